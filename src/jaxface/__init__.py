@@ -30,10 +30,16 @@ _LAZY = {
     "save_mesh": "jaxface.mesh",
     "SurfacePoints": "jaxface.surface",
     "Landmarks": "jaxface.landmarks",
+    "read_lm3": "jaxface.landmarks",
+    "write_lm3": "jaxface.landmarks",
+    "load_scan": "jaxface.io",
     "generic_head": "jaxface.head",
     "JaxfaceError": "jaxface.errors",
 }
-_SUBMODULES = {"rbf", "pbd", "mesh", "surface", "landmarks", "errors", "testing", "head", "render"}
+_SUBMODULES = {
+    "rbf", "pbd", "reference", "mesh", "surface", "landmarks", "errors", "testing", "head", "render",
+    "io", "erdogdu", "clone", "contours", "anatomy", "facs", "fit", "ltw",
+}
 
 __all__ = sorted(set(_LAZY) | _SUBMODULES | {"__version__"})
 
