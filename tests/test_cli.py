@@ -1,0 +1,121 @@
+"""The ``jaxface`` command line, run as a user would (subprocess), plus the error mapping."""
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import typer
+from typer.testing import CliRunner
+
+from jaxface import __version__
+from jaxface.cli import EXIT_ERROR, EXIT_MISSING, EXIT_USAGE, handle_errors
+
+
+def run_cli(*args, cwd=None, timeout=300):
+    env = dict(os.environ, MPLBACKEND="Agg")
+    return subprocess.run([sys.executable, "-m", "jaxface.cli", *map(str, args)], capture_output=True,
+                          text=True, cwd=cwd, env=env, timeout=timeout)
+
+
+@pytest.fixture(scope="module")
+def demo_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("demo") / "out"
+    proc = run_cli("demo", "--out", out, "--size", 200)
+    return out, proc
+
+
+def test_demo_writes_its_files(demo_dir):
+    out, proc = demo_dir
+    assert proc.returncode == 0, proc.stderr
+    names = {"head.ply", "head.lm3", "head.png", "upper_teeth.ply", "lower_teeth.ply", "eye_left.ply",
+             "eye_right.ply"}
+    assert names <= {p.name for p in out.iterdir()}
+    assert "head.ply" in proc.stderr            # the summary table lists the files
+
+
+def test_demo_files_load_back(demo_dir):
+    from matplotlib.image import imread
+
+    from jaxface.head import generic_head
+    from jaxface.landmarks import BOSPHORUS_LABELS, read_lm3
+    from jaxface.mesh import load_mesh
+
+    out, _ = demo_dir
+    head = generic_head()
+    mesh = load_mesh(out / "head.ply", units="mm")
+    assert mesh.n_vertices == head.mesh.n_vertices
+    np.testing.assert_array_equal(mesh.triangles, head.mesh.triangles)
+    np.testing.assert_allclose(mesh.vertices, head.mesh.vertices, atol=1e-3)   # float32 PLY
+    lm = read_lm3(out / "head.lm3")
+    assert tuple(lm.names) == tuple(BOSPHORUS_LABELS)
+    np.testing.assert_allclose(lm.positions, head.landmarks.positions, atol=1e-5)
+    for name, part in (("upper_teeth", head.upper_teeth), ("eye_left", head.eyes[0])):
+        m = load_mesh(out / f"{name}.ply", check_size=False)    # small parts (25-55 mm)
+        assert m.n_vertices == part.n_vertices
+    img = imread(out / "head.png")
+    assert img.ndim == 3 and img.shape[1] > img.shape[0]          # two panels side by side
+    assert (img[..., :3].mean(axis=2) < 0.9).mean() > 0.05         # not a blank picture
+
+
+def test_help_and_version(capsys):
+    from jaxface.cli import main
+
+    assert main(["--help"]) == 0
+    out = capsys.readouterr().out
+    assert "demo" in out and "Examples" in out and "Exit codes" in out
+    assert main(["demo", "--help"]) == 0
+    out = capsys.readouterr().out
+    assert "--out" in out and "jaxface demo --out" in out
+    assert main(["--version"]) == 0
+    assert capsys.readouterr().out.strip() == f"jaxface {__version__}"
+
+
+def test_bad_usage_exits_2_with_a_helpful_message(tmp_path, capsys):
+    from jaxface.cli import main
+
+    # through the real entry point in a subprocess
+    a_file = tmp_path / "not_a_folder.txt"
+    a_file.write_text("x")
+    proc = run_cli("demo", "--out", a_file)
+    assert proc.returncode == EXIT_USAGE
+    assert "--out" in proc.stderr and "is a file" in proc.stderr
+    assert not any(p.suffix == ".ply" for p in tmp_path.iterdir())
+    # and in process
+    assert main(["demo"]) == EXIT_USAGE
+    assert "Missing option '--out'" in capsys.readouterr().err
+    assert main(["demo", "--out", str(tmp_path / "x"), "--size", "5"]) == EXIT_USAGE
+    assert "--size" in capsys.readouterr().err
+    assert main(["no-such-command"]) == EXIT_USAGE
+    assert "No such command" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
+
+
+def test_error_mapping_to_exit_codes():
+    """Library errors map to the documented exit codes, with the message, without traceback."""
+    from jaxface.errors import DataNotFoundError, MeshError
+
+    app = typer.Typer()
+
+    @app.command()
+    @handle_errors
+    def boom(kind: str):
+        if kind == "mesh":
+            raise MeshError("3 degenerate triangle(s): triangle ids 4, 5, 6", problem="degenerate_triangles")
+        if kind == "data":
+            raise DataNotFoundError("shared data not found: /nowhere")
+        if kind == "file":
+            raise FileNotFoundError("no such file: scan.bnt")
+        raise RuntimeError("unexpected")
+
+    runner = CliRunner()
+    res = runner.invoke(app, ["mesh"])
+    assert res.exit_code == EXIT_USAGE and "degenerate triangle" in res.output
+    res = runner.invoke(app, ["data"])
+    assert res.exit_code == EXIT_MISSING and "/nowhere" in res.output
+    res = runner.invoke(app, ["file"])
+    assert res.exit_code == EXIT_MISSING and "scan.bnt" in res.output
+    res = runner.invoke(app, ["other"])
+    assert res.exit_code == EXIT_ERROR and "internal error" in res.output and "--debug" in res.output
+    assert "Traceback" not in res.output
