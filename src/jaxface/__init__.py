@@ -29,6 +29,8 @@ _LAZY = {
     "load_mesh": "jaxface.mesh",
     "save_mesh": "jaxface.mesh",
     "SurfacePoints": "jaxface.surface",
+    "Head": "jaxface.head",
+    "save_head": "jaxface.head",
     "Landmarks": "jaxface.landmarks",
     "read_lm3": "jaxface.landmarks",
     "write_lm3": "jaxface.landmarks",
