@@ -1,0 +1,105 @@
+"""Benchmark of the forward model (issue 5): one quasi-static synthesis on the ICT face.
+
+Run from the repository root::
+
+    JAXFACE_SHARED=../shared python benchmarks/bench_synth.py [--dtype float32|float64] [--repeat 7]
+
+Prints a table and writes ``benchmarks/results/bench_synth.json``. Measures (ICT-FaceKit face
+region, 9,409 vertices, with its teeth):
+
+* rig build time (NumPy: skull estimate, muscle placement, binding, constraints);
+* compile time and run time (min / median over ``--repeat`` calls) of one synthesis with the
+  default sweep counts;
+* convergence: the largest vertex difference (mm) between the default synthesis and one with
+  ten times more sweeps, for a smile + jaw opening;
+* batch throughput with ``jax.vmap`` (syntheses per second at batch 8 and 32);
+* a forward-mode Jacobian over all controls and the jaw pitch (``jax.jacfwd``), the operation
+  the fitter repeats.
+Timings are wall-clock on whatever machine runs it (say which when you quote them).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+def _time(fn, *args, repeat=7):
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn(*args))
+    compile_s = time.perf_counter() - t0
+    ts = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        ts.append((time.perf_counter() - t0) * 1000.0)
+    return compile_s, min(ts), statistics.median(ts)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--dtype", default="float32", choices=["float32", "float64"])
+    ap.add_argument("--repeat", type=int, default=7)
+    ap.add_argument("--no-jacobian", action="store_true")
+    args = ap.parse_args()
+    if args.dtype == "float64":
+        jax.config.update("jax_enable_x64", True)
+    from jaxface import facs
+    from jaxface.anatomy.ict import load_ict_face
+    from jaxface.anatomy.jaw import JawPose
+    from jaxface.anatomy.rig import build_rig, synthesize
+    from jaxface.testing import shared_path
+
+    dt = jnp.float32 if args.dtype == "float32" else jnp.float64
+    f = load_ict_face(shared_path("data", "ict", "ict_face.npz", pytest_skip=False),
+                      shared_path("data", "bosphorus_style", "truth.json", pytest_skip=False))
+    t0 = time.perf_counter()
+    rig = build_rig(f.skin, f.landmarks, upper_teeth=f.upper_teeth, lower_teeth=f.lower_teeth)
+    build_s = time.perf_counter() - t0
+    a, jaw, _ = facs.aus_to_controls({"AU12": 1.0, "AU6": 1.0, "AU26": 0.6}, rig.muscle_names)
+    a = jnp.asarray(a, dt)
+    jaw = JawPose(jnp.asarray(jaw.pitch_deg, dt), jnp.asarray(0.0, dt), jnp.asarray(0.0, dt))
+    res = {"machine": platform.processor() or platform.machine(), "cpus": os.cpu_count(),
+           "backend": jax.default_backend(), "dtype": args.dtype, "vertices": rig.n_vertices,
+           "controls": rig.n_controls, "muscle_particles": rig.muscles.n_particles,
+           "muscle_sweeps": rig.muscles.iterations, "skin_sweeps": rig.skin.iterations,
+           "build_s": build_s}
+    c, mn, md = _time(synthesize, rig, a, jaw, repeat=args.repeat)
+    res.update(synth_compile_s=c, synth_ms_min=mn, synth_ms_median=md)
+    x = synthesize(rig, a, jaw)
+    ref = synthesize(rig.with_iterations(muscles=10 * rig.muscles.iterations,
+                                         skin=10 * rig.skin.iterations), a, jaw)
+    res["convergence_mm_vs_10x_sweeps"] = float(jnp.abs(x - ref).max())
+    res["motion_mm"] = float(jnp.linalg.norm(x - rig.rest, axis=1).max())
+    for B in (8, 32):
+        A = jnp.tile(a[None], (B, 1)) * jnp.linspace(0.2, 1.0, B, dtype=dt)[:, None]
+        P = jnp.full((B,), jaw.pitch_deg, dt)
+        fb = jax.jit(jax.vmap(lambda a, p: synthesize(rig, a, JawPose(p))))
+        c, mn, md = _time(fb, A, P, repeat=max(2, args.repeat // 2))
+        res[f"batch{B}_ms_min"] = mn
+        res[f"batch{B}_syntheses_per_s"] = B / (mn / 1000.0)
+    if not args.no_jacobian:
+        theta = jnp.concatenate([a, jaw.pitch_deg[None]])
+        fj = jax.jit(jax.jacfwd(lambda th: synthesize(rig, th[:-1], JawPose(th[-1]))))
+        c, mn, md = _time(fj, theta, repeat=max(2, args.repeat // 2))
+        res.update(jacfwd_params=int(theta.shape[0]), jacfwd_compile_s=c, jacfwd_ms_min=mn)
+    width = max(len(k) for k in res)
+    for k, v in res.items():
+        print(f"{k:<{width}}  {v:.4g}" if isinstance(v, float) else f"{k:<{width}}  {v}")
+    out = Path(__file__).resolve().parent / "results"
+    out.mkdir(exist_ok=True)
+    (out / "bench_synth.json").write_text(json.dumps(res, indent=2))
+    print(f"wrote {out / 'bench_synth.json'}")
+
+
+if __name__ == "__main__":
+    main()

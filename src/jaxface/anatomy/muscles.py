@@ -1,0 +1,528 @@
+"""Muscle dynamics (thesis sec. 4.3): contraction by re-sampling, sphincters, passive layers.
+
+All placed muscles (:func:`jaxface.anatomy.muscle_map.place_muscles`) become one particle set
+(mass 1 each, thesis sec. 4.3) with, per muscle kind, the constraint network of Fig. 4.6 and the
+thesis stiffness values:
+
+=============== ===================================================== ========================
+kind            constraints (stiffness)                               source
+=============== ===================================================== ========================
+sheet / linear  latitudinal up 1.0, longitudinal up 0.1, connection   sec. 4.3.1
+                1.0, bending 0.4, volume 1.0, position 0.2
+sphincter       latitudinal up 0.2, connection 1.0, shear up 0.3,      sec. 4.3.2
+                shear low 0.3, bending 1.0, volume 1.0, position 0.2
+passive         as sheet (no contraction)                              sec. 4.3.3
+=============== ===================================================== ========================
+
+*Position* constraints tie every bottom particle to its action-line sample. Samples are
+recomputed from the current positions of the surfaces the action lines lie on - the static
+cranium, the mandible moved by the jaw, and the muscles of deeper layers - so a muscle lying on
+a deforming structure deforms with it (passive deformation). A fibre contracts by re-sampling
+its action line with ``step' = step (1 - c)`` (eq. 4.11), ``c = activation * max_contraction``.
+A sphincter moves each radial column of samples by
+``delta = c (o - s_inner) cos(pi/2 (1 - r))`` with ``r = sqrt((x/a)^2 + (y/b)^2)`` of the
+outer sample in the ellipse frame (sec. 4.3.2; the thesis prints ``(1 - c)`` and the axes
+swapped, which would move the muscle at rest; we use the form that is zero at ``c = 0``).
+
+Solve order per iteration (thesis animation loop, lines 8-11): for each layer, deepest first,
+refresh the samples of its action lines, then one fused Jacobi sweep
+(:mod:`jaxface.anatomy.solver`) over its constraints: positions, distances, bending, and the
+per-muscle volume (:func:`multi_volume_project`).
+
+Units: mm. Everything at run time is JAX (jit/vmap/jvp/grad).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import pbd
+from .muscle_geometry import jax_sample_polyline
+from .muscle_map import PlacedMuscle
+from .solver import fused_group, sweep
+
+__all__ = [
+    "STIFFNESS",
+    "SupportPoints",
+    "MuscleLayer",
+    "MuscleSystem",
+    "build_muscle_system",
+    "solve_muscles",
+    "multi_volume_project",
+    "muscle_volumes",
+]
+
+#: Thesis stiffness values per muscle kind (sec. 4.3.1-4.3.2); 0 disables a constraint kind.
+STIFFNESS = {
+    "sheet": dict(lat_up=1.0, lon_up=0.1, lat_low=0.0, lon_low=0.0, connection=1.0,
+                  shear_up=0.0, shear_low=0.0, bend=0.4, volume=1.0, position=0.2),
+    "sphincter": dict(lat_up=0.2, lon_up=0.0, lat_low=0.0, lon_low=0.0, connection=1.0,
+                      shear_up=0.3, shear_low=0.3, bend=1.0, volume=1.0, position=0.2),
+}
+STIFFNESS["linear"] = STIFFNESS["sheet"]
+POSITION_STIFFNESS = 0.2  # the same for every kind
+STIFFNESS["passive"] = STIFFNESS["sheet"]
+
+
+@dataclass
+class SupportPoints:
+    """Build-time collector of surface points on the support structures.
+
+    Every surface point becomes three ids into the run-time *support array*
+    ``G = [skull points moved by the jaw (S, 3); muscle particles (Nm, 3)]`` and three weights:
+    a point on the skull is stored once as its own row of the skull-point table (its rest
+    position, flagged when it lies on the mandible); a point on a muscle is a barycentric
+    combination of three muscle particles.
+    """
+
+    skull_rest: list
+    skull_on_mandible: list
+    muscle_offset: dict  # surface id -> first particle index of that muscle
+
+    def add(self, surface: np.ndarray, tri: np.ndarray, bary: np.ndarray, positions: np.ndarray,
+            meshes) -> tuple[np.ndarray, np.ndarray]:
+        """Register ``K`` surface points; returns ``(ids (K, 3) into G-without-offset, w (K, 3))``.
+
+        Skull ids are returned as negative numbers ``-(row + 1)`` and resolved by
+        :meth:`resolve` once the skull table is complete.
+        """
+        k = surface.shape[0]
+        ids = np.zeros((k, 3), np.int64)
+        w = np.zeros((k, 3))
+        for r in range(k):
+            s = int(surface[r])
+            if s in (0, 1):
+                self.skull_rest.append(np.asarray(positions[r], np.float64))
+                self.skull_on_mandible.append(s == 1)
+                ids[r] = -len(self.skull_rest)
+                w[r] = (1.0, 0.0, 0.0)
+            else:
+                tv = meshes[s].triangles[int(tri[r])]
+                ids[r] = self.muscle_offset[s] + tv
+                w[r] = bary[r]
+        return ids, w
+
+    def resolve(self, ids: np.ndarray) -> np.ndarray:
+        """Map the ids returned by :meth:`add` to rows of the final support array."""
+        S = len(self.skull_rest)
+        return np.where(ids < 0, -ids - 1, ids + S)
+
+
+class MuscleSystem(eqx.Module):
+    """All muscles of a rig (JAX pytree).
+
+    Attributes:
+        rest: ``(Nm, 3)`` rest particle positions, mm.
+        skull_rest: ``(S, 3)`` rest positions of the surface points on the skull, mm.
+        skull_on_mandible: ``(S,)`` bool.
+        skull_jaw_weight: ``(S,)`` in [0, 1], how much of the jaw motion each skull point
+            follows (1 on the mandible; a smooth ramp on the cranium just below and behind it,
+            the soft tissue that stretches between jaw and neck; 0 elsewhere).
+        fib_ids, fib_w: ``(F, m, 3)`` support ids / weights of the action-line points of every
+            fibre (sheet, linear and passive muscles).
+        fib_ctrl: ``(F,)`` control index (-1 for passive); fib_cmax: ``(F,)``;
+            fib_h: ``(F,)`` samples per fibre; fib_valid: ``(P,)`` flat index of the valid
+            samples in ``(F, H)``; fib_bottom: ``(P,)`` their bottom particles.
+        sph_ids, sph_w: ``(K, 3, n, 3)`` the three rings of every sphincter (inner, middle,
+            outer); sph_bottom: ``(K, 3, n)``; sph_ctrl: ``(K,)``; sph_cmax: ``(K,)``;
+            sph_axes: ``(K, 2, 3)``; sph_ab: ``(K, 2)`` semi-axes, mm.
+        groups: fused distance and bending groups (all muscles).
+        vol_*: per-muscle volume data (:func:`multi_volume_project`).
+        pos_inv_count: ``(Nm,)``; inv_mass: ``(Nm,)``.
+        offsets: static, first particle of each muscle + total; names: static muscle names;
+        layers: static layer of each muscle; h_max: static; iterations: static sweeps.
+    """
+
+    rest: jax.Array
+    skull_rest: jax.Array
+    skull_on_mandible: jax.Array
+    skull_jaw_weight: jax.Array
+    fib_ids: jax.Array
+    fib_w: jax.Array
+    fib_ctrl: jax.Array
+    fib_cmax: jax.Array
+    fib_h: jax.Array
+    fib_valid: jax.Array
+    fib_bottom: jax.Array
+    fib_len0: jax.Array
+    sph_ids: jax.Array
+    sph_w: jax.Array
+    sph_bottom: jax.Array
+    sph_ctrl: jax.Array
+    sph_cmax: jax.Array
+    sph_axes: jax.Array
+    sph_ab: jax.Array
+    groups: tuple
+    vol_tri: jax.Array
+    vol_owner: jax.Array
+    vol_rest: jax.Array
+    vol_k: jax.Array
+    vol_particle_owner: jax.Array
+    vol_particles: jax.Array
+    pos_inv_count: jax.Array
+    inv_mass: jax.Array
+    particle_layer: jax.Array
+    below: jax.Array
+    offsets: tuple = eqx.field(static=True)
+    names: tuple = eqx.field(static=True)
+    layers: tuple = eqx.field(static=True)
+    h_max: int = eqx.field(static=True, default=8)
+    iterations: int = eqx.field(static=True, default=24)
+
+    @property
+    def n_particles(self) -> int:
+        return int(self.rest.shape[0])
+
+    @property
+    def n_muscles(self) -> int:
+        return len(self.names)
+
+    def support(self, skull_moved, x):
+        """``(S + Nm, 3)`` support array from moved skull points and muscle particles."""
+        return jnp.concatenate([skull_moved, x], axis=0)
+
+    def muscle_vertices(self, x, name: str):
+        """``(2 w h, 3)`` particles of one muscle from the stacked ``x``."""
+        i = self.names.index(name)
+        return x[self.offsets[i]:self.offsets[i + 1]]
+
+
+def _eval_support(G, ids, w):
+    return jnp.einsum("...k,...kd->...d", w.astype(G.dtype), G[ids])
+
+
+def multi_volume_project(x, tri, owner, rest, k, particle_owner, particles, n_owner: int, inv_mass):
+    """Project one volume constraint per closed muscle mesh (eq. 3.22), all at once.
+
+    Args:
+        x: ``(N, 3)`` mm; tri: ``(T, 3)`` triangles of all muscles (outward);
+        owner: ``(T,)`` muscle of each triangle; rest: ``(K,)`` mm^3; k: ``(K,)`` stiffness;
+        particle_owner: ``(P,)`` muscle of each listed particle; particles: ``(P,)`` ids;
+        n_owner: static ``K``; inv_mass: ``(N,)``.
+
+    Returns:
+        ``(N, 3)`` mm with every muscle's volume corrected (linearised, exact at first order).
+    """
+    dt = x.dtype
+    a, b, c = x[tri[:, 0]], x[tri[:, 1]], x[tri[:, 2]]
+    vol = jax.ops.segment_sum(jnp.sum(jnp.cross(a, b) * c, axis=1), owner, n_owner) / 6.0
+    n = x.shape[0]
+    G = (jax.ops.segment_sum(jnp.cross(b, c), tri[:, 0], n) + jax.ops.segment_sum(jnp.cross(c, a), tri[:, 1], n)
+         + jax.ops.segment_sum(jnp.cross(a, b), tri[:, 2], n)) / 6.0
+    w = inv_mass.astype(dt)
+    Gp = G[particles]
+    denom = jax.ops.segment_sum(w[particles] * jnp.sum(Gp * Gp, axis=1), particle_owner, n_owner)
+    C = vol - rest.astype(dt)
+    ok = denom > 0
+    dlam = jnp.where(ok, -k.astype(dt) * C / jnp.where(ok, denom, 1.0), 0.0)
+    return x.at[particles].add((w[particles] * dlam[particle_owner])[:, None] * Gp)
+
+
+def muscle_volumes(system: MuscleSystem, x) -> jax.Array:
+    """``(n_muscles,)`` enclosed volume of each muscle mesh at ``x`` ``(Nm, 3)``, mm^3."""
+    tri = system.vol_tri
+    a, b, c = x[tri[:, 0]], x[tri[:, 1]], x[tri[:, 2]]
+    return jax.ops.segment_sum(jnp.sum(jnp.cross(a, b) * c, axis=1), system.vol_owner,
+                               system.n_muscles) / 6.0
+
+
+@dataclass
+class PendingMuscles:
+    """Muscle system waiting for the skull-point table to be complete (the skin binding adds
+    skull points); :meth:`finalize` resolves the support ids and converts to JAX."""
+
+    data: dict
+    sp: SupportPoints
+
+    def finalize(self, jaw_weight=None) -> MuscleSystem:
+        """Args: jaw_weight: optional callable ``(points (S, 3), on_mandible (S,)) -> (S,)``
+        weights of the jaw motion (default: 1 on the mandible, 0 elsewhere)."""
+        d = dict(self.data)
+        res = self.sp.resolve
+        d["fib_ids"] = res(d["fib_ids"])
+        d["sph_ids"] = res(d["sph_ids"]) if d["sph_ids"].size else d["sph_ids"]
+        skull = np.stack(self.sp.skull_rest) if self.sp.skull_rest else np.zeros((0, 3))
+        static = {k: d.pop(k) for k in ("offsets", "names", "layers", "h_max", "iterations")}
+        groups = d.pop("groups")
+        arrs = {k: jnp.asarray(v) for k, v in d.items()}
+        onm = np.array(self.sp.skull_on_mandible, bool)
+        jw = onm.astype(np.float64) if jaw_weight is None else np.asarray(jaw_weight(skull, onm), np.float64)
+        return MuscleSystem(skull_rest=jnp.asarray(skull),
+                            skull_on_mandible=jnp.asarray(onm), skull_jaw_weight=jnp.asarray(jw),
+                            groups=groups, **arrs, **static)
+
+
+def build_muscle_system(placed: list[PlacedMuscle], registry, control_index: dict,
+                        iterations: int = 24) -> tuple[PendingMuscles, SupportPoints]:
+    """Assemble the muscle particle system (NumPy build time).
+
+    Args:
+        placed: the placed muscles (layer order).
+        registry: their :class:`~jaxface.anatomy.muscle_map.SurfaceRegistry`.
+        control_index: muscle name -> index in the activation vector.
+        iterations: static number of sweeps of the quasi-static muscle solve.
+
+    Returns:
+        ``(PendingMuscles, SupportPoints)``: add the skin's skull points to the collector,
+        then call ``PendingMuscles.finalize()``.
+    """
+    from ..mesh import TriMesh
+
+    meshes = registry.meshes
+    with_mesh = [p for p in placed if p.mesh is not None]
+    offsets = [0]
+    muscle_offset = {}
+    for p in with_mesh:
+        muscle_offset[p.surface_id] = offsets[-1]
+        offsets.append(offsets[-1] + p.rest_vertices.shape[0])
+    n = offsets[-1]
+    rest = np.concatenate([p.rest_vertices for p in with_mesh]) if with_mesh else np.zeros((0, 3))
+    sp = SupportPoints([], [], muscle_offset)
+    dist, bend, vol = [], [], []
+    fib = []   # (ids (m,3), w (m,3), ctrl, cmax, h, bottom (h,))
+    sph = []
+    for mi, p in enumerate(with_mesh):
+        off = offsets[mi]
+        g = p.grid
+        kk = STIFFNESS[p.kind]
+        ctrl = control_index.get(p.name, -1) if p.spec.active else -1
+        cmax = p.spec.max_contraction
+        for key, arr in (("lat_up", g.latitudinal_up), ("lon_up", g.longitudinal_up),
+                         ("lat_low", g.latitudinal_low), ("lon_low", g.longitudinal_low),
+                         ("connection", g.connection), ("shear_up", g.shear_up),
+                         ("shear_low", g.shear_low)):
+            if kk[key] > 0 and len(arr):
+                dist.append((arr + off, kk[key]))
+        tm = TriMesh(p.rest_vertices, g.triangles, validate=False)
+        if kk["bend"] > 0 and len(tm.edge_pairs):
+            bend.append((np.asarray(tm.edge_pairs) + off, kk["bend"]))
+        vol.append((g.triangles + off, kk["volume"], np.arange(off, offsets[mi + 1])))
+        if p.kind == "sphincter":
+            rings = [sp.add(f.surface, f.tri, f.bary, f.positions, meshes) for f in p.fibres]
+            sph.append(dict(ids=np.stack([r[0] for r in rings]), w=np.stack([r[1] for r in rings]),
+                            bottom=off + np.arange(3 * g.w).reshape(3, g.w), ctrl=ctrl, cmax=cmax,
+                            axes=p.axes, ab=p.semi_axes))
+        else:
+            for j, f in enumerate(p.fibres):
+                ids, w = sp.add(f.surface, f.tri, f.bary, f.positions, meshes)
+                fib.append((ids, w, ctrl, cmax, g.h, off + np.arange(g.h) * g.w + j))
+    h_max = max([f[4] for f in fib], default=2)
+    m_max = max([f[0].shape[0] for f in fib], default=2)
+    F = len(fib)
+    fib_ids = np.zeros((F, m_max, 3), np.int64)
+    fib_w = np.zeros((F, m_max, 3))
+    for i, f in enumerate(fib):
+        m = f[0].shape[0]
+        fib_ids[i, :m] = f[0]
+        fib_w[i, :m] = f[1]
+        fib_ids[i, m:] = f[0][-1]   # pad with the last point (zero-length segments)
+        fib_w[i, m:] = f[1][-1]
+    valid = np.concatenate([i * h_max + np.arange(f[4]) for i, f in enumerate(fib)]) if fib else np.zeros(0, np.int64)
+    fib_len0 = np.zeros(F)
+    for i, f in enumerate(fib):
+        ids_, w_ = f[0], f[1]
+        corner = np.stack([[sp.skull_rest[-k - 1] if k < 0 else rest[k] for k in row] for row in ids_])
+        sp_pts = np.einsum("mk,mkd->md", w_, corner)
+        fib_len0[i] = np.linalg.norm(np.diff(sp_pts, axis=0), axis=1).sum()
+    bottom = np.concatenate([f[5] for f in fib]) if fib else np.zeros(0, np.int64)
+    if sph:
+        nr = {s["ids"].shape[1] for s in sph}
+        if len(nr) != 1:
+            raise ValueError("all sphincters of a map must have the same n_around.")
+    pos_ids = np.concatenate([bottom] + [s["bottom"].ravel() for s in sph])
+    pos_cnt = np.bincount(pos_ids, minlength=n)
+    groups = []
+    if dist:
+        pairs = np.concatenate([a for a, _ in dist])
+        ks = np.concatenate([np.full(len(a), k) for a, k in dist])
+        groups.append(fused_group(pbd.distance_constraints(pairs, rest, stiffness=ks), n,
+                                  omega=1.5, name="muscle distances"))
+    if bend:
+        ep = np.concatenate([a for a, _ in bend])
+        ks = np.concatenate([np.full(len(a), k) for a, k in bend])
+        groups.append(fused_group(pbd.bending_constraints(ep, rest, stiffness=ks), n,
+                                  omega=1.0, name="muscle bending"))
+    tri = np.concatenate([t for t, _, _ in vol])
+    owner = np.concatenate([np.full(len(t), i) for i, (t, _, _) in enumerate(vol)])
+    a, b, c = rest[tri[:, 0]], rest[tri[:, 1]], rest[tri[:, 2]]
+    vrest = np.bincount(owner, np.einsum("ij,ij->i", np.cross(a, b), c), minlength=len(vol)) / 6.0
+    data = dict(
+        rest=rest,
+        fib_ids=fib_ids, fib_w=fib_w,
+        fib_ctrl=np.array([f[2] for f in fib], np.int32), fib_cmax=np.array([f[3] for f in fib], float),
+        fib_h=np.array([f[4] for f in fib], float), fib_valid=valid, fib_bottom=bottom,
+        fib_len0=fib_len0,
+        sph_ids=np.stack([s["ids"] for s in sph]) if sph else np.zeros((0, 3, 2, 3), np.int64),
+        sph_w=np.stack([s["w"] for s in sph]) if sph else np.zeros((0, 3, 2, 3)),
+        sph_bottom=np.stack([s["bottom"] for s in sph]) if sph else np.zeros((0, 3, 2), np.int64),
+        sph_ctrl=np.array([s["ctrl"] for s in sph], np.int32),
+        sph_cmax=np.array([s["cmax"] for s in sph], float),
+        sph_axes=np.stack([s["axes"] for s in sph]) if sph else np.zeros((0, 2, 3)),
+        sph_ab=np.stack([s["ab"] for s in sph]) if sph else np.zeros((0, 2)),
+        groups=tuple(groups),
+        vol_tri=tri, vol_owner=owner, vol_rest=vrest,
+        vol_k=np.array([k for _, k, _ in vol], float),
+        vol_particle_owner=np.concatenate([np.full(len(pp), i) for i, (_, _, pp) in enumerate(vol)]),
+        vol_particles=np.concatenate([pp for _, _, pp in vol]),
+        pos_inv_count=np.where(pos_cnt > 0, 1.0 / np.maximum(pos_cnt, 1), 0.0),
+        inv_mass=np.ones(n),
+        particle_layer=np.concatenate([np.full(offsets[i + 1] - offsets[i], p.spec.layer)
+                                       for i, p in enumerate(with_mesh)]) if with_mesh else np.zeros(0, np.int64),
+        below=np.concatenate([offsets[i] + np.tile(np.arange((offsets[i + 1] - offsets[i]) // 2), 2)
+                              for i in range(len(with_mesh))]) if with_mesh else np.zeros(0, np.int64),
+        offsets=tuple(offsets), names=tuple(p.name for p in with_mesh),
+        layers=tuple(p.spec.layer for p in with_mesh), h_max=int(h_max), iterations=int(iterations),
+    )
+    return PendingMuscles(data, sp), sp
+
+
+def moved_skull_points(system: MuscleSystem, R, t):
+    """``(S, 3)`` skull surface points after the jaw motion ``p' = R p + t`` on the mandible."""
+    sk = system.skull_rest.astype(R.dtype)
+    moved = sk @ R.T + t
+    w = system.skull_jaw_weight.astype(sk.dtype)[:, None]
+    return sk + w * (moved - sk)
+
+
+def sample_targets(system: MuscleSystem, G, activations):
+    """Targets of every bottom particle: ``(P,)`` particle ids and ``(P, 3)`` mm positions.
+
+    Fibres: action lines evaluated on the support ``G`` and re-sampled with the contraction
+    (eq. 4.11). Sphincters: the ring samples displaced toward the contraction centre
+    (sec. 4.3.2).
+    """
+    dt = G.dtype
+    acts = jnp.concatenate([jnp.asarray(activations, dt), jnp.zeros((1,), dt)])
+    pts = _eval_support(G, system.fib_ids, system.fib_w)              # (F, m, 3)
+    c = acts[system.fib_ctrl] * system.fib_cmax.astype(dt)           # ctrl -1 -> 0
+    s = _sample_var(pts, system.fib_h.astype(dt), system.h_max, c)   # (F, H, 3)
+    tg_f = s.reshape(-1, 3)[system.fib_valid]
+    if system.sph_ids.shape[0] == 0:
+        return system.fib_bottom, tg_f
+    P = _eval_support(G, system.sph_ids, system.sph_w)                # (K, 3, n, 3)
+    inner, outer = P[:, 0], P[:, 2]
+    o = jnp.mean(inner, axis=1, keepdims=True)                        # (K, 1, 3)
+    ax = system.sph_axes.astype(dt)
+    xx = jnp.einsum("knd,kd->kn", outer - o, ax[:, 0])
+    yy = jnp.einsum("knd,kd->kn", outer - o, ax[:, 1])
+    ab = system.sph_ab.astype(dt)
+    r2 = (xx / ab[:, :1]) ** 2 + (yy / ab[:, 1:]) ** 2
+    r = jnp.minimum(jnp.sqrt(jnp.maximum(r2, 1e-12)), 1.0)
+    cs = acts[system.sph_ctrl] * system.sph_cmax.astype(dt)          # (K,)
+    delta = cs[:, None, None] * (o - inner) * jnp.cos(0.5 * jnp.pi * (1.0 - r))[..., None]
+    tg_s = (P + delta[:, None]).reshape(-1, 3)
+    return (jnp.concatenate([system.fib_bottom, system.sph_bottom.reshape(-1)]),
+            jnp.concatenate([tg_f, tg_s]))
+
+
+def fibre_thickening(system: MuscleSystem, G, activations):
+    """``(P,)`` thickness factor of every fibre sample: rest fibre length over current
+    (contracted) length, the factor that keeps a fibre's cross-section times length constant."""
+    dt = G.dtype
+    acts = jnp.concatenate([jnp.asarray(activations, dt), jnp.zeros((1,), dt)])
+    pts = _eval_support(G, system.fib_ids, system.fib_w)
+    d = pts[:, 1:] - pts[:, :-1]
+    L = jnp.sum(jnp.sqrt(jnp.sum(d * d, axis=-1) + 1e-12), axis=-1)
+    c = acts[system.fib_ctrl] * system.fib_cmax.astype(dt)
+    ratio = system.fib_len0.astype(dt) / jnp.maximum(L * (1.0 - c), 1e-6)
+    H = system.h_max
+    return jnp.repeat(ratio, H)[system.fib_valid]
+
+
+def _sample_var(points, h, h_max: int, c):
+    """:func:`jax_sample_polyline` with a per-polyline sample count ``h`` ``(F,)`` (float),
+    padded to ``h_max`` samples (extra samples are clamped to the end and discarded)."""
+    p = points
+    d = p[..., 1:, :] - p[..., :-1, :]
+    d2 = jnp.sum(d * d, axis=-1)
+    ok = d2 > 1e-24
+    seg = jnp.where(ok, jnp.sqrt(jnp.where(ok, d2, 1.0)), 0.0)
+    cum = jnp.concatenate([jnp.zeros_like(seg[..., :1]), jnp.cumsum(seg, axis=-1)], axis=-1)
+    total = cum[..., -1:]
+    i = jnp.arange(h_max, dtype=p.dtype)
+    s = i * (total / (h[:, None] - 1.0)) * (1.0 - c[:, None])
+    s = jnp.minimum(s, total)
+    m1 = seg.shape[-1]
+    j = jnp.clip(jnp.sum(cum[..., None, 1:] <= s[..., :, None], axis=-1), 0, m1 - 1)
+    cj = jnp.take_along_axis(cum, j, axis=-1)
+    lj = jnp.take_along_axis(seg, j, axis=-1)
+    okj = lj > 0
+    u = jnp.clip(jnp.where(okj, (s - cj) / jnp.where(okj, lj, 1.0), 0.0), 0.0, 1.0)[..., None]
+    pj = jnp.take_along_axis(p, j[..., None], axis=-2)
+    pj1 = jnp.take_along_axis(p, (j + 1)[..., None], axis=-2)
+    return (1 - u) * pj + u * pj1
+
+
+def _pos_sweep(system: MuscleSystem, x, ids, tg, inv_mass):
+    dt = x.dtype
+    dp = POSITION_STIFFNESS * (tg - x[ids])
+    dp = jnp.where((inv_mass[ids] > 0)[:, None], dp, 0.0)
+    return x + jax.ops.segment_sum(dp, ids, x.shape[0]) * system.pos_inv_count.astype(dt)[:, None]
+
+
+def muscle_sweep(system: MuscleSystem, x, skull, activations, inv_mass):
+    """One sweep of the muscle solve: refresh the samples from the current support, then
+    positions, distances and bending (fused Jacobi) and the per-muscle volumes."""
+    G = system.support(skull, x)
+    ids, tg = sample_targets(system, G, activations)
+    x = _pos_sweep(system, x, ids, tg, inv_mass)
+    x = sweep(system.groups, x, inv_mass)
+    return multi_volume_project(x, system.vol_tri, system.vol_owner, system.vol_rest, system.vol_k,
+                                system.vol_particle_owner, system.vol_particles, system.n_muscles,
+                                inv_mass)
+
+
+def warm_start(system: MuscleSystem, skull, activations):
+    """Start positions close to the equilibrium, layer by layer (deepest first): bottom
+    particles at their samples computed on the already-placed deeper layers, each top particle
+    above its bottom particle at the rest offset scaled by the fibre's shortening
+    (volume-preserving thickening, sec. 4.1)."""
+    rest = system.rest.astype(skull.dtype)
+    x = rest
+    below = system.below                      # (Nm,) the bottom particle under each particle
+    is_top = below != jnp.arange(rest.shape[0])
+    off = rest - rest[below]
+    for L in sorted(set(system.layers)):
+        G = system.support(skull, x)
+        ids, tg = sample_targets(system, G, activations)
+        thick = fibre_thickening(system, G, activations)
+        mine = system.particle_layer[ids] == L
+        xb = x.at[ids].set(jnp.where(mine[:, None], tg, x[ids]))
+        scale = jnp.ones(rest.shape[0], rest.dtype).at[system.fib_bottom].set(thick)
+        lifted = jnp.where(is_top[:, None], xb[below] + off * scale[below][:, None], xb)
+        x = jnp.where((system.particle_layer == L)[:, None], lifted, x)
+    return x
+
+
+def solve_muscles(system: MuscleSystem, activations, R, t, *, iterations: int | None = None,
+                  x0=None):
+    """Quasi-static muscle solve for given activations and jaw motion.
+
+    All layers are refreshed in every sweep (a layer's samples are read from the current
+    positions of the deeper layers), so after ``iterations`` sweeps the configuration is the
+    layered equilibrium of the thesis's deepest-first loop.
+
+    Args:
+        system: the :class:`MuscleSystem`.
+        activations: ``(M,)`` in [0, 1] (the rig's control vector).
+        R, t: mandible motion (:meth:`JawModel.transform`).
+        iterations: sweeps (static; default ``system.iterations``).
+        x0: optional warm start ``(Nm, 3)`` mm.
+
+    Returns:
+        ``(x (Nm, 3) mm, skull_moved (S, 3) mm)``.
+    """
+    iters = system.iterations if iterations is None else int(iterations)
+    activations = jnp.asarray(activations)
+    dt = jnp.result_type(activations.dtype, R.dtype)
+    skull = moved_skull_points(system, R.astype(dt), t.astype(dt))
+    x = warm_start(system, skull, activations.astype(dt)) if x0 is None else jnp.asarray(x0, dt)
+    inv_mass = system.inv_mass.astype(dt)
+    x = jax.lax.fori_loop(0, iters, lambda _, x: muscle_sweep(system, x, skull, activations.astype(dt),
+                                                              inv_mass), x)
+    return x, skull

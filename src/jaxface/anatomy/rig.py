@@ -1,0 +1,386 @@
+"""The face rig: :func:`build_rig` assembles skull, jaw, muscles and skin for one face, and
+:func:`synthesize` turns muscle activations and a jaw pose into the deformed skin.
+
+Forward model (thesis sec. 5.7, quasi-static):
+
+1. the jaw pose gives the rigid motion of the mandible and lower teeth (:mod:`.jaw`);
+2. the muscles are solved (:func:`jaxface.anatomy.muscles.solve_muscles`): action lines
+   re-sampled with the activations, layers deepest first, thesis constraints;
+3. the skin anchors are refreshed from the surface points they are bound to, averaged over the
+   tissue footprint and weighted by the influence map; eyelids rotate; optional cheek puff;
+4. the skin is solved (:func:`jaxface.anatomy.skin.solve_skin`) with the thesis constraints and
+   the teeth collisions.
+
+:func:`synthesize` is jit-compiled (``eqx.filter_jit``), works under ``jax.vmap`` over batches
+of activations / jaw poses, and is differentiable in forward and reverse mode with respect to
+the activations, the jaw pose and the cheek puff. :func:`simulate` runs the dynamic version
+(time steps of 16.6 ms with damping 0.2) for animation.
+
+Units: mm, degrees (jaw angles); +y up, +z forward, subject's left +x.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..errors import RigError
+from ..mesh import TriMesh
+from .frame import face_frame
+from .jaw import JawModel, JawPose
+from .muscle_map import MuscleSpec, PlacedMuscle, load_muscle_map, place_muscles, placement_registry
+from .muscles import MuscleSystem, build_muscle_system, muscle_sweep, solve_muscles, warm_start, moved_skull_points
+from .skin import SkinSystem, bind_skin, build_skin_system, eyelid_vertices, influence_map, skin_targets, solve_skin
+from .skull import Skull, estimate_skull
+
+__all__ = ["Rig", "RigInfo", "SynthState", "build_rig", "synthesize", "synthesize_state", "simulate"]
+
+
+class RigInfo:
+    """Build-time (NumPy) objects of a rig, kept for inspection and pictures; compared by
+    identity so that it can sit in a static field of the :class:`Rig` pytree.
+
+    Attributes:
+        skin: the rest skin :class:`TriMesh`; landmarks: the landmarks used; frame: the
+        :class:`~jaxface.anatomy.frame.FaceFrame`; skull: the :class:`Skull`;
+        placed: the :class:`PlacedMuscle` list; specs: the :class:`MuscleSpec` list;
+        binding: the skin :class:`~jaxface.anatomy.skin.Binding`; influence: ``(V,)``.
+    """
+
+    def __init__(self, **kw):
+        self.__dict__.update(kw)
+
+    def __hash__(self):
+        return id(self)
+
+    def __eq__(self, other):
+        return self is other
+
+
+class Rig(eqx.Module):
+    """A face rig (JAX pytree): the model of one face.
+
+    Attributes:
+        jaw: :class:`JawModel`.
+        muscles: :class:`~jaxface.anatomy.muscles.MuscleSystem`.
+        skin: :class:`~jaxface.anatomy.skin.SkinSystem`.
+        muscle_names: static tuple, the order of the activation vector.
+        muscle_aus: static tuple of the AUs of each control.
+        info: static :class:`RigInfo` (build-time objects).
+    """
+
+    jaw: JawModel
+    muscles: MuscleSystem
+    skin: SkinSystem
+    muscle_names: tuple = eqx.field(static=True)
+    muscle_aus: tuple = eqx.field(static=True)
+    info: RigInfo = eqx.field(static=True)
+
+    @property
+    def n_controls(self) -> int:
+        """Number of activations ``M``."""
+        return len(self.muscle_names)
+
+    @property
+    def n_vertices(self) -> int:
+        return self.skin.n_vertices
+
+    @property
+    def rest(self) -> jax.Array:
+        """``(V, 3)`` rest skin, mm."""
+        return self.skin.rest
+
+    @property
+    def triangles(self) -> np.ndarray:
+        """``(F, 3)`` skin triangles."""
+        return self.info.skin.triangles
+
+    def index(self, name: str) -> int:
+        """Index of a control in the activation vector (RigError listing the names if unknown)."""
+        try:
+            return self.muscle_names.index(name)
+        except ValueError:
+            raise RigError(f"unknown muscle {name!r}; the rig's controls are {list(self.muscle_names)}.") from None
+
+    def activations(self, values: dict | None = None, **kw) -> jax.Array:
+        """``(M,)`` activation vector from ``{name: value}`` (others 0)."""
+        a = np.zeros(self.n_controls)
+        for k, v in {**(values or {}), **kw}.items():
+            a[self.index(k)] = float(v)
+        return jnp.asarray(a)
+
+    def with_iterations(self, muscles: int | None = None, skin: int | None = None) -> "Rig":
+        """A copy with other static sweep counts (e.g. many for a converged reference)."""
+        r = self
+        if muscles is not None:
+            r = eqx.tree_at(lambda q: q.muscles, r, _replace_static(r.muscles, iterations=int(muscles)))
+        if skin is not None:
+            r = eqx.tree_at(lambda q: q.skin, r, _replace_static(r.skin, iterations=int(skin)))
+        return r
+
+
+def _replace_static(module, **kw):
+    import dataclasses
+
+    return dataclasses.replace(module, **kw)
+
+
+def _as_mesh(skin) -> TriMesh:
+    if isinstance(skin, TriMesh):
+        return skin
+    if hasattr(skin, "mesh") and isinstance(skin.mesh, TriMesh):
+        return skin.mesh
+    raise RigError(f"build_rig needs the skin as a jaxface TriMesh (mm), got {type(skin).__name__}.")
+
+
+def build_rig(skin, landmarks=None, skull: Skull | None = None, muscle_map=None, backend: str = "pbd",
+              *, upper_teeth: TriMesh | None = None, lower_teeth: TriMesh | None = None,
+              muscle_iterations: int = 32, skin_iterations: int = 8, footprint_mm: float = 5.0,
+              influence_radius: float = 0.15, eyelid_threshold: float = 0.04,
+              bending: bool = False, jaw_blend_mm: float = 40.0):
+    """Build the rig of a face.
+
+    Args:
+        skin: the skin :class:`TriMesh` (mm, face looking +z), or a
+            :class:`jaxface.head.Head` (then ``landmarks`` and the teeth default to the head's).
+        landmarks: its Bosphorus landmarks (22 face labels at least).
+        skull: a :class:`Skull` (user-supplied or fitted); estimated when None.
+        muscle_map: path of a muscle-map JSON, a list of :class:`MuscleSpec`, or None for the
+            packaged default map.
+        backend: "pbd" (this module) or "ltw" (the Lee-Terzopoulos-Waters backend).
+        upper_teeth, lower_teeth: teeth meshes (mm) for the lip collisions (default: the
+            skull's).
+        muscle_iterations, skin_iterations: static sweeps of the quasi-static solves.
+        footprint_mm: sigma of the tissue footprint (reference mm).
+        influence_radius: influence-map falloff in normalised geodesic distance.
+        eyelid_threshold: normalised geodesic distance of the eyelid region (thesis 0.04).
+        bending: include the skin's dihedral bending constraints (thesis 0.95; off by default:
+            with the tissue footprint they change the result by < 0.1 mm at 3x the cost).
+        jaw_blend_mm: width of the ramp over which cranium points below the mouth slit and
+            next to the mandible (submental skin, cheeks over the ramus) follow part of the
+            jaw motion (reference mm; 0 = rigid split).
+
+    Returns:
+        :class:`Rig`.
+
+    Raises:
+        RigError, LandmarkError, MeshError: unusable inputs (named in the message).
+    """
+    if backend == "ltw":
+        try:
+            from ..ltw.rig import build_ltw_rig
+        except ImportError as e:  # pragma: no cover - depends on the other backend
+            raise RigError(f"the LTW backend is not available ({e}).") from None
+        return build_ltw_rig(skin, landmarks, skull=skull, muscle_map=muscle_map)
+    if backend != "pbd":
+        raise RigError(f"unknown backend {backend!r}; use 'pbd' or 'ltw'.")
+    if not isinstance(skin, TriMesh) and hasattr(skin, "mesh"):
+        head = skin
+        landmarks = head.landmarks if landmarks is None else landmarks
+        upper_teeth = getattr(head, "upper_teeth", None) if upper_teeth is None else upper_teeth
+        lower_teeth = getattr(head, "lower_teeth", None) if lower_teeth is None else lower_teeth
+    mesh = _as_mesh(skin)
+    if landmarks is None:
+        raise RigError("build_rig needs the face's landmarks.")
+    frame = face_frame(landmarks)
+    if skull is None:
+        skull = estimate_skull(mesh, landmarks, upper_teeth=upper_teeth, lower_teeth=lower_teeth)
+    elif upper_teeth is not None or lower_teeth is not None:
+        skull = skull.with_teeth(upper_teeth or skull.upper_teeth, lower_teeth or skull.lower_teeth)
+    if isinstance(muscle_map, (list, tuple)):
+        specs = list(muscle_map)
+        if not all(isinstance(s, MuscleSpec) for s in specs):
+            raise RigError("muscle_map must be a path, None, or a list of MuscleSpec.")
+    else:
+        specs = load_muscle_map(muscle_map)
+    controls = [s for s in specs if s.active]
+    names = tuple(s.name for s in controls)
+    ci = {n: i for i, n in enumerate(names)}
+    placed = place_muscles(mesh, landmarks, skull, specs)
+    registry = placement_registry(skull, placed)
+    pend, sp = build_muscle_system(placed, registry, ci, iterations=muscle_iterations)
+    binding = bind_skin(mesh, registry, scale=frame.mean_scale)
+    ids, w = sp.add(binding.surface, binding.tri, binding.bary, binding.point, registry.meshes)
+    muscles = pend.finalize(jaw_weight=_jaw_weights(skull, frame, jaw_blend_mm))
+    ids = sp.resolve(ids)
+    sources = binding.surface != 0
+    infl = influence_map(mesh, sources, influence_radius)
+    # eyelids: one lid region per eye; angles per control from the map
+    eyelids = []
+    for side in ("left", "right"):
+        angles = np.zeros((len(names), 2))
+        for s in controls:
+            if s.kind == "eyelid" and s.side == side and s.angles_deg:
+                angles[ci[s.name]] = (float(s.angles_deg.get("upper", 0.0)),
+                                      float(s.angles_deg.get("lower", 0.0)))
+        if not np.any(angles):
+            continue
+        lid_ids, fall, upper = eyelid_vertices(mesh, frame, side, eyelid_threshold)
+        pm = next(p for p in placed if p.kind == "eyelid" and p.spec.side == side)
+        eyelids.append((lid_ids, fall, upper, len(eyelids), pm.centre, pm.axes[0], angles))
+    skin_sys = build_skin_system(mesh, frame, binding, ids, w, influence=infl, eyelids=eyelids,
+                                 teeth=(skull.upper_teeth, skull.lower_teeth),
+                                 footprint_mm=footprint_mm, bending=bending,
+                                 iterations=skin_iterations)
+    jaw = JawModel.from_landmarks(frame)
+    info = RigInfo(skin=mesh, landmarks=landmarks, frame=frame, skull=skull, placed=placed,
+                   specs=specs, binding=binding, influence=infl, registry=registry)
+    return Rig(jaw=jaw, muscles=muscles, skin=skin_sys, muscle_names=names,
+               muscle_aus=tuple(tuple(s.aus) for s in controls), info=info)
+
+
+def _jaw_weights(skull: Skull, frame, blend_mm: float):
+    """Weights of the jaw motion for skull surface points (see :class:`MuscleSystem`)."""
+
+    def fn(points, on_mandible):
+        w = on_mandible.astype(np.float64)
+        if blend_mm <= 0 or points.shape[0] == 0:
+            return w
+        crn = np.flatnonzero(~on_mandible)
+        if crn.size == 0:
+            return w
+        _, dist = skull.mandible.closest_points(points[crn])
+        loc = frame.to_local(points[crn])
+        st = frame.to_local(frame.stomion)[1]
+        below = np.clip((st - loc[:, 1]) / 8.0, 0.0, 1.0)      # fade in below the mouth slit
+        r = np.clip(dist / (blend_mm * frame.mean_scale), 0.0, 1.0)
+        w[crn] = (1.0 - r * r * (3.0 - 2.0 * r)) * below
+        return w
+
+    return fn
+
+
+class SynthState(eqx.Module):
+    """Everything a synthesis computes (for tests and pictures).
+
+    Attributes:
+        skin: ``(V, 3)`` mm; muscles: ``(Nm, 3)`` mm; targets: ``(V, 3)`` skin anchor
+        targets, mm; R, t: the mandible motion.
+    """
+
+    skin: jax.Array
+    muscles: jax.Array
+    targets: jax.Array
+    R: jax.Array
+    t: jax.Array
+
+
+def _check_acts(rig: Rig, activations):
+    a = jnp.asarray(activations)
+    if a.ndim != 1 or a.shape[0] != rig.n_controls:
+        raise RigError(f"activations must have shape ({rig.n_controls},) ordered as "
+                       f"rig.muscle_names; got {tuple(a.shape)}. Use jax.vmap for batches.")
+    if not jnp.issubdtype(a.dtype, jnp.floating):
+        a = a.astype(jnp.result_type(float))
+    return a
+
+
+def _synth(rig: Rig, activations, jaw: JawPose, cheek_puff):
+    a = _check_acts(rig, activations)
+    if not isinstance(jaw, JawPose):
+        raise RigError(f"jaw must be a JawPose, got {type(jaw).__name__}.")
+    dt = jnp.result_type(a.dtype, jaw.pitch_deg.dtype)
+    a = a.astype(dt)
+    R, t = rig.jaw.transform(jaw)
+    R, t = R.astype(dt), t.astype(dt)
+    xm, skull = solve_muscles(rig.muscles, a, R, t)
+    G = rig.muscles.support(skull, xm)
+    tg = skin_targets(rig.skin, G, a, jnp.asarray(cheek_puff, dt))
+    x = solve_skin(rig.skin, tg, R, t)
+    return SynthState(skin=x, muscles=xm, targets=tg, R=R, t=t)
+
+
+@eqx.filter_jit
+def synthesize_state(rig: Rig, activations, jaw: JawPose | None = None, cheek_puff=0.0) -> SynthState:
+    """:func:`synthesize`, returning the whole :class:`SynthState`."""
+    jaw = JawPose() if jaw is None else jaw
+    return _synth(rig, activations, jaw, cheek_puff)
+
+
+@eqx.filter_jit
+def synthesize(rig: Rig, activations, jaw: JawPose | None = None, cheek_puff=0.0):
+    """Synthesize the face for muscle activations and a jaw pose (quasi-static).
+
+    Args:
+        rig: the :class:`Rig`.
+        activations: ``(M,)`` in [0, 1], ordered as ``rig.muscle_names``.
+        jaw: :class:`JawPose` (degrees, mm; smoothly clamped to the limits); neutral if None.
+        cheek_puff: AU33/34 air pressure in [0, 1] (outward cheek displacement of
+            ``puff_mm`` at 1; 0 = off).
+
+    Returns:
+        ``(V, 3)`` skin vertices, mm.
+
+    Raises:
+        RigError: activations of the wrong shape (use ``jax.vmap`` for batches).
+    """
+    jaw = JawPose() if jaw is None else jaw
+    return _synth(rig, activations, jaw, cheek_puff).skin
+
+
+def simulate(rig: Rig, activations, jaw: JawPose | None = None, *, dt: float = 0.0166,
+             damping: float = 0.2, muscle_sweeps: int = 4, skin_sweeps: int = 4, cheek_puff=None):
+    """Dynamic animation (thesis sec. 5.7): one time step per frame.
+
+    Each frame: jaw transform; ``muscle_sweeps`` sweeps of the muscles from the previous frame;
+    skin anchors refreshed; the skin integrated with position-based dynamics (velocity damped
+    by ``damping``, prediction ``p = x + dt v``, ``skin_sweeps`` sweeps of the constraints and
+    collisions, ``v = (p - x) / dt``).
+
+    Args:
+        rig: the :class:`Rig`.
+        activations: ``(T, M)`` per frame.
+        jaw: :class:`JawPose` with ``(T,)`` leaves (neutral if None).
+        dt: time step, s (16.6 ms).
+        damping: velocity damping per step (thesis 0.2).
+        muscle_sweeps, skin_sweeps: static sweeps per frame.
+        cheek_puff: optional ``(T,)``.
+
+    Returns:
+        ``(T, V, 3)`` skin per frame, mm.
+    """
+    A = jnp.asarray(activations)
+    if A.ndim != 2 or A.shape[1] != rig.n_controls:
+        raise RigError(f"simulate needs activations of shape (T, {rig.n_controls}); got {tuple(A.shape)}.")
+    T = A.shape[0]
+    dtp = A.dtype if jnp.issubdtype(A.dtype, jnp.floating) else jnp.result_type(float)
+    A = A.astype(dtp)
+    if jaw is None:
+        jaw = JawPose(jnp.zeros(T, dtp), jnp.zeros(T, dtp), jnp.zeros(T, dtp))
+    puff = jnp.zeros(T, dtp) if cheek_puff is None else jnp.asarray(cheek_puff, dtp)
+    return _simulate(rig, A, jaw, puff, float(dt), float(damping), int(muscle_sweeps), int(skin_sweeps))
+
+
+@eqx.filter_jit
+def _simulate(rig, A, jaw, puff, dt, damping, muscle_sweeps, skin_sweeps):
+    from .skin import solve_skin as _solve_skin
+
+    ms = rig.muscles
+    dtp = A.dtype
+    x_m0 = ms.rest.astype(dtp)
+    x_s0 = rig.skin.rest.astype(dtp)
+    v0 = jnp.zeros_like(x_s0)
+    inv_m = ms.inv_mass.astype(dtp)
+    dyn = (rig.skin.inv_mass > 0)[:, None]
+
+    def frame(carry, inp):
+        xm, xs, v = carry
+        a, pose, p = inp
+        R, t = rig.jaw.transform(pose)
+        R, t = R.astype(dtp), t.astype(dtp)
+        skull = moved_skull_points(ms, R, t)
+        xm = jax.lax.fori_loop(0, muscle_sweeps, lambda _, x: muscle_sweep(ms, x, skull, a, inv_m), xm)
+        tg = skin_targets(rig.skin, ms.support(skull, xm), a, p)
+        v = v * (1.0 - damping)
+        pred = jnp.where(dyn, xs + dt * v, xs)
+        new = _solve_skin(rig.skin, tg, R, t, iterations=skin_sweeps, x0=pred)
+        v = jnp.where(dyn, (new - xs) / dt, 0.0)
+        return (xm, new, v), new
+
+    poses = JawPose(jaw.pitch_deg.astype(dtp), jaw.yaw_deg.astype(dtp), jaw.protrusion_mm.astype(dtp))
+    _, out = jax.lax.scan(frame, (x_m0, x_s0, v0), (A, poses, puff))
+    return out

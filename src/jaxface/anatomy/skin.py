@@ -1,0 +1,530 @@
+"""The skin (thesis sec. 5.5-5.7): constraints, binding, influence map, eyelids, teeth collision.
+
+Build time (NumPy):
+
+* **constraints** with the thesis values: stretch on every edge and across adjacent triangles
+  (0.15), bending (0.95), triangle area (0.95) and the skin volume (1.0), built with the
+  :mod:`jaxface.pbd` constraint kinds on the part of the skin that can move;
+* **binding**: each skin vertex casts a ray along its (smoothed) normal, outward first against
+  the muscles, then inward against the muscles (the first surface met, i.e. the most
+  superficial) and then the skull (cranium or mandible); the hit becomes a surface point and
+  the vertex is tied to it by an anchor (stiffness 0.2). The thesis adds a particle ``q`` bound
+  to the surface point and a stretch link ``p-q``; here ``q`` carries the rest offset
+  ``p0 - sp0`` (the link has zero rest length), which makes the tie resist tangential sliding
+  so that the quasi-static problem is well posed;
+* **tissue footprint**: the anchor displacement of a vertex is the geodesic-Gaussian average
+  (sigma ``footprint_mm``) of the displacements of the surface points bound around it, a model
+  of the fat layer that spreads a muscle's pull over the skin (without it the skin would shear
+  sharply along every muscle border);
+* **influence map**: ``w = 1 - smoothstep(d / radius)`` of the normalised geodesic distance
+  ``d`` from the vertices bound to a muscle or to the mandible; it scales each vertex's anchor
+  displacement (thesis line 17 scales the particle's displacement; scaling the target keeps
+  the final state consistent with the collisions), and vertices with ``w = 0`` are kinematic;
+* **eyelids**: vertices within normalised geodesic distance 0.04 (tunable) of the eye border
+  rotate about the axis through the eye corners (moved back onto the eyeball centre), upper
+  lid above the axis, lower lid below, with a smooth falloff toward the threshold;
+* **teeth**: convex hulls of the upper and lower teeth (:func:`jaxface.pbd.hull_planes`); the
+  lower hull moves with the jaw (:func:`jaxface.pbd.transform_planes`); lip vertices inside a
+  hull are pushed out through the nearest face (unilateral, resolved fully every sweep).
+
+Units: mm.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import dijkstra
+
+from .. import pbd
+from ..errors import RigError
+from ..mesh import TriMesh
+from .frame import FaceFrame
+from .geometry import segment_cast, smooth_normals
+from .solver import fused_group
+
+__all__ = [
+    "SKIN_STIFFNESS",
+    "SkinSystem",
+    "bind_skin",
+    "influence_map",
+    "footprint_matrix",
+    "eyelid_vertices",
+    "build_skin_system",
+    "skin_targets",
+    "solve_skin",
+]
+
+#: Thesis skin stiffness values (sec. 5.5).
+SKIN_STIFFNESS = dict(stretch=0.15, cross=0.15, bend=0.95, area=0.95, anchor=0.2, volume=1.0,
+                      damping=0.2)
+
+
+@dataclass
+class Binding:
+    """Result of :func:`bind_skin` (NumPy).
+
+    Attributes:
+        surface: ``(V,)`` surface index (0 cranium, 1 mandible, 2+ muscles in the registry).
+        tri: ``(V,)``; bary: ``(V, 3)``; point: ``(V, 3)`` rest hit positions, mm.
+        direction: ``(V,)`` +1 outward hit, -1 inward hit, 0 closest-point fallback.
+    """
+
+    surface: np.ndarray
+    tri: np.ndarray
+    bary: np.ndarray
+    point: np.ndarray
+    direction: np.ndarray
+
+
+def bind_skin(skin: TriMesh, registry, *, scale: float = 1.0, normal_smoothing: int = 3) -> Binding:
+    """Bind every skin vertex to the muscles or the skull by ray casting (thesis sec. 5.5).
+
+    Args:
+        skin: the skin mesh, mm.
+        registry: the :class:`~jaxface.anatomy.muscle_map.SurfaceRegistry` (cranium, mandible,
+            muscles).
+        scale: face scale (ray lengths: 12 mm outward, 45 mm inward to muscles, 60 mm to the
+            skull, times ``scale``).
+        normal_smoothing: one-ring passes over the vertex normals.
+
+    Returns:
+        :class:`Binding`.
+    """
+    x = skin.vertices
+    n = smooth_normals(skin, normal_smoothing)
+    V = x.shape[0]
+    surf = np.full(V, -1, np.int64)
+    tri = np.zeros(V, np.int64)
+    bary = np.zeros((V, 3))
+    t_best = np.full(V, np.inf)
+    direction = np.zeros(V, np.int64)
+    muscles = list(range(2, len(registry.meshes)))
+
+    def cast(ids, origins, dirs, length, targets, sign):
+        for s in targets:
+            h = segment_cast(registry.meshes[s], origins, dirs, length)
+            better = h.hit & (h.t < t_best[ids])
+            sel = np.flatnonzero(better)
+            if sel.size:
+                rows = ids[sel]
+                t_best[rows] = h.t[sel]
+                surf[rows] = s
+                tri[rows] = h.tri[sel]
+                bary[rows] = h.bary[sel]
+                direction[rows] = sign
+
+    # all muscles as one mesh (one r-tree), triangle -> registry surface
+    if muscles:
+        mv, mt, owner, off = [], [], [], 0
+        for s in muscles:
+            m = registry.meshes[s]
+            mv.append(m.vertices)
+            mt.append(m.triangles + off)
+            owner.append(np.full(m.n_triangles, s))
+            off += m.n_vertices
+        union = TriMesh(np.concatenate(mv), np.concatenate(mt), validate=False)
+        tri_owner = np.concatenate(owner)
+        tri_first = {s: int(np.flatnonzero(tri_owner == s)[0]) for s in muscles}
+
+        def cast_union(ids, origins, dirs, length, sign):
+            h = segment_cast(union, origins, dirs, length)
+            sel = np.flatnonzero(h.hit & (h.t < t_best[ids]))
+            rows = ids[sel]
+            t_best[rows] = h.t[sel]
+            own = tri_owner[h.tri[sel]]
+            surf[rows] = own
+            tri[rows] = h.tri[sel] - np.array([tri_first[o] for o in own], dtype=np.int64)
+            bary[rows] = h.bary[sel]
+            direction[rows] = sign
+
+        allv = np.arange(V)
+        cast_union(allv, x, n, 12.0 * scale, +1)                      # outward, muscles
+        todo = np.flatnonzero(surf < 0)
+        cast_union(todo, x[todo], -n[todo], 45.0 * scale, -1)         # inward, muscles
+    todo = np.flatnonzero(surf < 0)
+    cast(todo, x[todo], -n[todo], 60.0 * scale, [0, 1], -1)           # inward, skull
+    todo = np.flatnonzero(surf < 0)
+    if todo.size:                                                     # closest skull point
+        best = np.full(todo.size, np.inf)
+        for s in (0, 1):
+            spts, dist = registry.meshes[s].closest_points(x[todo])
+            b = dist < best
+            best[b] = dist[b]
+            surf[todo[b]] = s
+            tri[todo[b]] = np.asarray(spts.tri)[b]
+            bary[todo[b]] = np.asarray(spts.bary)[b]
+    point = np.zeros((V, 3))
+    for s in np.unique(surf):
+        sel = surf == s
+        m = registry.meshes[s]
+        point[sel] = np.einsum("kj,kjd->kd", bary[sel], m.vertices[m.triangles[tri[sel]]])
+    return Binding(surf, tri, bary, point, direction)
+
+
+def _smoothstep(t):
+    t = np.clip(t, 0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)
+
+
+def influence_map(skin: TriMesh, sources: np.ndarray, radius: float = 0.15) -> np.ndarray:
+    """Influence weights ``(V,)`` in [0, 1] (thesis sec. 5.5, Fig. 5.14).
+
+    Args:
+        skin: the skin mesh.
+        sources: ``(V,)`` bool, the vertices bound to a muscle or to the mandible.
+        radius: falloff radius in normalised geodesic distance (fraction of the largest
+            distance from the sources over the skin).
+
+    Returns:
+        ``(V,)``: 1 on the sources, ``1 - smoothstep(d / radius)`` elsewhere (0 where not
+        connected to any source).
+    """
+    if not np.any(sources):
+        return np.zeros(skin.n_vertices)
+    d = skin.geodesic_distance(np.flatnonzero(sources), normalise=True)
+    d = np.where(np.isfinite(d), d, np.inf)
+    return 1.0 - _smoothstep(d / radius)
+
+
+def footprint_matrix(skin: TriMesh, sigma: float, *, chunk: int = 512) -> sp.csr_matrix:
+    """Row-normalised geodesic Gaussian ``(V, V)`` sparse matrix (support ``2.5 sigma`` mm).
+
+    Geodesic (edge-graph Dijkstra) rather than Euclidean neighbourhoods, so that the upper
+    and lower lips, or the two eyelids, do not average across the mouth or eye openings.
+    """
+    V = skin.n_vertices
+    e = skin.edges
+    L = np.linalg.norm(skin.vertices[e[:, 0]] - skin.vertices[e[:, 1]], axis=1)
+    L = np.maximum(L, 1e-9)
+    g = sp.coo_matrix((np.concatenate([L, L]), (np.concatenate([e[:, 0], e[:, 1]]),
+                                                  np.concatenate([e[:, 1], e[:, 0]]))), shape=(V, V)).tocsr()
+    lim = 2.5 * sigma
+    rows, cols, vals = [], [], []
+    for s in range(0, V, chunk):
+        ids = np.arange(s, min(V, s + chunk))
+        D = dijkstra(g, directed=False, indices=ids, limit=lim)
+        r, c = np.nonzero(np.isfinite(D))
+        rows.append(ids[r])
+        cols.append(c)
+        vals.append(np.exp(-0.5 * (D[r, c] / sigma) ** 2))
+    M = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(V, V))
+    rs = np.asarray(M.sum(axis=1)).ravel()
+    return sp.diags(1.0 / np.maximum(rs, 1e-300)) @ M
+
+
+def eyelid_vertices(skin: TriMesh, frame: FaceFrame, side: str, threshold: float = 0.04):
+    """The lid vertices of one eye (thesis sec. 5.5.1).
+
+    The eye border is the skin boundary loop around the eye (when the skin has an eye
+    opening) or else the vertices closest to the segment between the eye corners. Vertices
+    whose normalised geodesic distance from the border is below ``threshold`` are lid
+    vertices.
+
+    Returns:
+        ``(ids (K,), falloff (K,) in (0, 1], upper (K,) bool)``.
+    """
+    inner = frame.points[f"Inner {side} eye corner"]
+    outer = frame.points[f"Outer {side} eye corner"]
+    centre = 0.5 * (inner + outer)
+    width = np.linalg.norm(outer - inner)
+    border = None
+    for loop in skin.boundary_loops:
+        c = skin.vertices[loop].mean(axis=0)
+        ext = np.ptp(skin.vertices[loop], axis=0).max()
+        if np.linalg.norm(c - centre) < 0.35 * width and ext < 2.0 * width:
+            border = np.asarray(loop)
+            break
+    if border is None:
+        # vertices closest to the corner-to-corner segment
+        x = skin.vertices
+        u = outer - inner
+        t = np.clip(((x - inner) @ u) / (u @ u), 0.0, 1.0)
+        dist = np.linalg.norm(x - (inner + t[:, None] * u), axis=1)
+        border = np.flatnonzero(dist < max(np.sort(dist)[min(8, len(dist) - 1)], 1e-9) + 1e-9)
+    d = skin.geodesic_distance(border, normalise=True)
+    ids = np.flatnonzero(d < threshold)
+    fall = 1.0 - _smoothstep(d[ids] / threshold)
+    # upper / lower: above or below the corner line (in the face's up direction)
+    rel = skin.vertices[ids] - inner
+    u = (outer - inner) / width
+    up_dir = frame.axes[1] - u * (frame.axes[1] @ u)
+    upper = rel @ up_dir > 0
+    return ids, np.maximum(fall, 1e-3), upper
+
+
+class SkinSystem(eqx.Module):
+    """Run-time skin data (JAX pytree). See :func:`build_skin_system`.
+
+    Attributes:
+        rest: ``(V, 3)`` rest skin, mm.
+        bind_ids, bind_w: ``(V, 3)`` support ids / weights of each vertex's surface point.
+        bind_offset: ``(V, 3)`` rest offset ``p0 - sp0``, mm.
+        fp_rows, fp_cols, fp_vals: the footprint matrix (COO).
+        influence: ``(V,)``; inv_mass: ``(V,)`` (0 = kinematic).
+        anchor_k: ``(V,)`` anchor stiffness; anchor_inv_count: ``(V,)``.
+        lid_ids, lid_fall, lid_pivot, lid_axis, lid_ctrl_angles: eyelids.
+        puff_dir: ``(V, 3)`` cheek-puff displacement per unit pressure, mm.
+        groups: fused stretch/cross, area, bending groups; volume: the skin volume group.
+        upper_hull, lower_hull: hull collision groups (or None); lower_planes: rest planes.
+        iterations: static sweeps of the quasi-static solve.
+    """
+
+    rest: jax.Array
+    bind_ids: jax.Array
+    bind_w: jax.Array
+    bind_offset: jax.Array
+    fp_rows: jax.Array
+    fp_cols: jax.Array
+    fp_vals: jax.Array
+    influence: jax.Array
+    inv_mass: jax.Array
+    anchor_k: jax.Array
+    anchor_ids: jax.Array
+    anchor_inv_count: jax.Array
+    lid_ids: jax.Array
+    lid_fall: jax.Array
+    lid_upper: jax.Array
+    lid_side: jax.Array
+    lid_pivot: jax.Array
+    lid_axis: jax.Array
+    lid_angles: jax.Array
+    puff_dir: jax.Array
+    groups: tuple
+    volume: object
+    upper_hull: object
+    lower_hull: object
+    lower_planes: tuple
+    iterations: int = eqx.field(static=True, default=12)
+
+    @property
+    def n_vertices(self) -> int:
+        return int(self.rest.shape[0])
+
+
+def _hull_group(teeth: TriMesh | None, skin_x: np.ndarray, candidates_margin: float, n: int,
+                inv_mass: np.ndarray, clearance: float):
+    if teeth is None:
+        return None, None
+    N, d = pbd.hull_planes(teeth.vertices)
+    sd = skin_x @ N.T - d[None]
+    depth = sd.max(axis=1)                  # signed distance-like (>0 outside)
+    cand = np.flatnonzero((depth < candidates_margin) & (inv_mass > 0))
+    if cand.size == 0:
+        return None, (N, d)
+    # vertices inside at rest keep their rest penetration (the rest state is collision-free)
+    clr = np.minimum(clearance, depth[cand] - 1e-6)
+    g = pbd.hull_constraints(cand, N, d, clearance=clr, stiffness=1.0)
+    return fused_group(g, n, name="teeth"), (N, d)
+
+
+def build_skin_system(skin: TriMesh, frame: FaceFrame, binding: Binding, support_ids, support_w,
+                      *, influence: np.ndarray, eyelids: list, teeth=(None, None),
+                      footprint_mm: float = 3.5, stiffness: dict | None = None,
+                      bending: bool = True, iterations: int = 12, lid_stiffness: float = 0.9,
+                      puff_mm: float = 8.0) -> SkinSystem:
+    """Assemble the skin system (NumPy build time).
+
+    Args:
+        skin: the skin mesh, mm; frame: its :class:`FaceFrame`.
+        binding: :func:`bind_skin` result; support_ids, support_w: ``(V, 3)`` its surface
+            points as rows of the support array (see :class:`~jaxface.anatomy.muscles.SupportPoints`).
+        influence: ``(V,)`` influence map.
+        eyelids: list of ``(ids, falloff, upper, side_index, pivot (3,), axis (3,), angles (C, 2))``
+            where ``angles[c] = (upper_deg, lower_deg)`` per control ``c`` (0 for non-eyelid
+            controls).
+        teeth: ``(upper, lower)`` teeth meshes or None.
+        footprint_mm: sigma of the tissue footprint, mm.
+        stiffness: overrides of :data:`SKIN_STIFFNESS`.
+        bending: include the dihedral bending constraints.
+        iterations: static sweeps of the quasi-static solve.
+        lid_stiffness: anchor stiffness of the eyelid vertices.
+        puff_mm: outward displacement of the cheeks at cheek-puff 1, mm.
+    """
+    k = dict(SKIN_STIFFNESS)
+    k.update(stiffness or {})
+    x = skin.vertices
+    V = x.shape[0]
+    infl = np.asarray(influence, np.float64)
+    dyn = infl > 1e-4
+    if not dyn.any():
+        raise RigError("no skin vertex is under the influence of a muscle or the jaw: the "
+                       "muscle map and the skin do not overlap. Check the landmarks.")
+    inv_mass = dyn.astype(np.float64)
+    groups = []
+    e = skin.edges
+    pairs = skin.edge_pairs
+    te = np.concatenate([e, pairs[:, 2:]]) if len(pairs) else e
+    tk = np.concatenate([np.full(len(e), k["stretch"]), np.full(len(pairs), k["cross"])])
+    keep = dyn[te].any(axis=1)
+    groups.append(fused_group(pbd.distance_constraints(te[keep], x, stiffness=tk[keep]), V,
+                              omega=1.5, name="skin stretch"))
+    tri = skin.triangles
+    tkeep = dyn[tri].any(axis=1)
+    if k["area"] > 0 and tkeep.any():
+        groups.append(fused_group(pbd.area_constraints(tri[tkeep], x, stiffness=k["area"]), V,
+                                  omega=1.0, name="skin area"))
+    if bending and k["bend"] > 0 and len(pairs):
+        bkeep = dyn[pairs].any(axis=1)
+        groups.append(fused_group(pbd.bending_constraints(pairs[bkeep], x, stiffness=k["bend"]), V,
+                                  omega=1.0, name="skin bending"))
+    from .skull import head_centre
+
+    vol = None
+    if k["volume"] > 0:
+        vol = pbd.volume_constraint(tri, x, origin=head_centre(frame), stiffness=k["volume"])
+    # footprint
+    F = footprint_matrix(skin, footprint_mm * frame.mean_scale).tocoo()
+    # eyelids
+    lid_ids, lid_fall, lid_upper, lid_side, piv, axs, angs = [], [], [], [], [], [], []
+    for (ids, fall, upper, side, pivot, axis, angles) in eyelids:
+        lid_ids.append(ids)
+        lid_fall.append(fall)
+        lid_upper.append(upper)
+        lid_side.append(np.full(len(ids), side))
+        piv.append(pivot)
+        axs.append(axis)
+        angs.append(angles)
+    anchor_k = np.full(V, k["anchor"])
+    if lid_ids:
+        li = np.concatenate(lid_ids)
+        anchor_k[li] = np.maximum(anchor_k[li], lid_stiffness * np.concatenate(lid_fall))
+    # cheek puff: outward along the normal, weighted by a cheek bump around the buccal area
+    n0 = smooth_normals(skin, 3)
+    bump = np.zeros(V)
+    for sgn in (1.0, -1.0):
+        c = frame.to_world([sgn * 42.0, -58.0, 0.0])
+        loc = frame.to_local(x)
+        cl = frame.to_local(c)
+        r2 = ((loc[:, 0] - cl[0]) / 22.0) ** 2 + ((loc[:, 1] - cl[1]) / 20.0) ** 2
+        side_ok = (loc[:, 0] * sgn) > 8.0
+        bump = np.maximum(bump, np.where(side_ok, np.exp(-r2 * 2.0), 0.0))
+    puff = (puff_mm * frame.mean_scale) * bump[:, None] * n0 * infl[:, None]
+    up_g, up_planes = _hull_group(teeth[0], x, 20.0 * frame.mean_scale, V, inv_mass, 0.3)
+    lo_g, lo_planes = _hull_group(teeth[1], x, 30.0 * frame.mean_scale, V, inv_mass, 0.3)
+    acnt = np.ones(V)
+    return SkinSystem(
+        rest=jnp.asarray(x), bind_ids=jnp.asarray(support_ids), bind_w=jnp.asarray(support_w),
+        bind_offset=jnp.asarray(x - binding.point),
+        fp_rows=jnp.asarray(F.row), fp_cols=jnp.asarray(F.col), fp_vals=jnp.asarray(F.data),
+        influence=jnp.asarray(infl), inv_mass=jnp.asarray(inv_mass), anchor_k=jnp.asarray(anchor_k),
+        anchor_ids=jnp.arange(V), anchor_inv_count=jnp.asarray(acnt),
+        lid_ids=jnp.asarray(np.concatenate(lid_ids) if lid_ids else np.zeros(0, np.int64)),
+        lid_fall=jnp.asarray(np.concatenate(lid_fall) if lid_fall else np.zeros(0)),
+        lid_upper=jnp.asarray(np.concatenate(lid_upper) if lid_upper else np.zeros(0, bool)),
+        lid_side=jnp.asarray(np.concatenate(lid_side) if lid_side else np.zeros(0, np.int64)),
+        lid_pivot=jnp.asarray(np.stack(piv) if piv else np.zeros((0, 3))),
+        lid_axis=jnp.asarray(np.stack(axs) if axs else np.zeros((0, 3))),
+        lid_angles=jnp.asarray(np.stack(angs) if angs else np.zeros((0, 1, 2))),
+        puff_dir=jnp.asarray(puff),
+        groups=tuple(groups), volume=vol, upper_hull=up_g, lower_hull=lo_g,
+        lower_planes=(None if lo_planes is None else (jnp.asarray(lo_planes[0]), jnp.asarray(lo_planes[1]))),
+        iterations=int(iterations),
+    )
+
+
+def _rotate(p, pivot, axis, ang):
+    """Rodrigues rotation of points ``p (K, 3)`` about per-point axes through pivots."""
+    c = jnp.cos(ang)[:, None]
+    s = jnp.sin(ang)[:, None]
+    v = p - pivot
+    kxv = jnp.cross(axis, v)
+    kdv = jnp.sum(axis * v, axis=1, keepdims=True)
+    return pivot + v * c + kxv * s + axis * kdv * (1.0 - c)
+
+
+def skin_targets(sk: SkinSystem, G, activations, cheek_puff=0.0):
+    """Anchor targets ``(V, 3)`` mm of the skin for the current support ``G``.
+
+    Bound surface points evaluated on ``G``, displacements averaged over the tissue
+    footprint and scaled by the influence map, eyelid rotations and cheek puff added.
+    """
+    dt = G.dtype
+    rest = sk.rest.astype(dt)
+    sp_ = jnp.einsum("vk,vkd->vd", sk.bind_w.astype(dt), G[sk.bind_ids])
+    disp = sp_ + sk.bind_offset.astype(dt) - rest
+    disp = jax.ops.segment_sum(sk.fp_vals.astype(dt)[:, None] * disp[sk.fp_cols], sk.fp_rows,
+                               num_segments=rest.shape[0])
+    disp = disp * sk.influence.astype(dt)[:, None]
+    if sk.lid_ids.shape[0]:
+        a = jnp.asarray(activations, dt)
+        ang = jnp.einsum("c,scl->sl", a, sk.lid_angles.astype(dt)) * (jnp.pi / 180.0)   # (sides, 2)
+        per = jnp.where(sk.lid_upper, ang[sk.lid_side, 0], ang[sk.lid_side, 1]) * sk.lid_fall.astype(dt)
+        p0 = rest[sk.lid_ids]
+        rot = _rotate(p0, sk.lid_pivot.astype(dt)[sk.lid_side], sk.lid_axis.astype(dt)[sk.lid_side], per)
+        disp = disp.at[sk.lid_ids].add(rot - p0)
+    disp = disp + jnp.asarray(cheek_puff, dt) * sk.puff_dir.astype(dt)
+    return rest + disp
+
+
+def _hull_project(g, x, normals, offsets):
+    """Push the hull group's particles out of the (moved) hull, fully."""
+    c = g.c
+    dt = x.dtype
+    N = normals.astype(dt)
+    ids = c.idx[:, 0]
+    p = x[ids]
+    sd = p @ N.T - offsets.astype(dt)[None]
+    h = jnp.argmax(sd, axis=1)
+    C = jnp.max(sd, axis=1) - c.clearance.astype(dt)
+    push = jnp.where(C < 0, -C, 0.0)
+    return x.at[ids].add(push[:, None] * N[h])
+
+
+def solve_skin(sk: SkinSystem, targets, R, t, *, iterations: int | None = None, x0=None):
+    """Quasi-static skin solve: anchors to ``targets``, thesis constraints, teeth collisions.
+
+    Args:
+        sk: the :class:`SkinSystem`.
+        targets: ``(V, 3)`` anchor targets, mm (:func:`skin_targets`).
+        R, t: jaw motion (moves the lower-teeth hull).
+        iterations: static sweeps (default ``sk.iterations``).
+        x0: optional warm start (default: the targets).
+
+    Returns:
+        ``(V, 3)`` mm.
+    """
+    from .solver import sweep
+
+    iters = sk.iterations if iterations is None else int(iterations)
+    dt = targets.dtype
+    inv_mass = sk.inv_mass.astype(dt)
+    rest = sk.rest.astype(dt)
+    dyn = (inv_mass > 0)[:, None]
+    x = jnp.where(dyn, targets, rest) if x0 is None else jnp.asarray(x0, dt)
+    vol = sk.volume
+    if vol is not None:
+        # the volume the underlying structures imply: the capped volume of the targets
+        xt = jnp.where(dyn, targets, rest).T
+        P = tuple(xt[:, vol.idx[:, k]] for k in range(3))
+        v_ = eqx.tree_at(lambda q: q.origin, vol, vol.origin.astype(dt))
+        vol = eqx.tree_at(lambda q: q.rest, vol, v_.volume_terms(P)[0].reshape(1).astype(vol.rest.dtype))
+    lower = None
+    if sk.lower_hull is not None:
+        lower = pbd.transform_planes(sk.lower_planes[0].astype(dt), sk.lower_planes[1].astype(dt), R.astype(dt), t.astype(dt))
+    kk = sk.anchor_k.astype(dt)[:, None]
+
+    def body(_, x):
+        x = x + jnp.where(dyn, kk * (targets - x), 0.0)
+        x = sweep(sk.groups, x, inv_mass)
+        if vol is not None:
+            x = sweep((fused_group_static(vol),), x, inv_mass)
+        if sk.upper_hull is not None:
+            x = _hull_project(sk.upper_hull, x, sk.upper_hull.c.normals, sk.upper_hull.c.offsets)
+        if lower is not None:
+            x = _hull_project(sk.lower_hull, x, lower[0], lower[1])
+        return x
+
+    return jax.lax.fori_loop(0, iters, body, x)
+
+
+def fused_group_static(vol):
+    """Wrap the volume constraint for :func:`jaxface.anatomy.solver.sweep` (no counts needed)."""
+    from .solver import FusedGroup
+
+    return FusedGroup(c=vol, inv_count=jnp.zeros((1,)), omega=1.0, name="skin volume")

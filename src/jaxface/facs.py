@@ -1,0 +1,282 @@
+"""FACS action units <-> muscle activations, jaw pose and cheek puff; emotion presets.
+
+:data:`AU_MUSCLES` gives, for each action unit at full intensity (1.0 = FACS level E), the
+activation of the muscles of the default map (:mod:`jaxface.anatomy.muscle_map`, base names;
+a bilateral muscle means both its ``_L`` and ``_R`` controls). ``AU12L`` / ``AU12R`` are the
+unilateral variants (the subject's left is +x). Jaw AUs move the jaw (:data:`AU_JAW`), AU33/34
+set the cheek puff. Lip AUs 18, 22, 23 and 28 all act through the single orbicularis oris
+sphincter of the map (with different intensities), so they are not separable from muscle
+activations: the readout attributes that sphincter to AU23 (plus AU24 where the mentalis
+joins it).
+
+* :func:`aus_to_controls` turns ``{"AU12": 0.8, "AU26": 1}`` into an activation vector (ordered
+  as ``rig.muscle_names``), a :class:`~jaxface.anatomy.jaw.JawPose` and a cheek puff;
+* :data:`EMOTIONS` holds the Ekman/Friesen prototypes (happiness 6+12, sadness 1+4+15,
+  surprise 1+2+5+26, fear 1+2+4+5+20+26, anger 4+5+7+23, disgust 9+15+16);
+* :func:`au_intensities` is the inverse readout: non-negative least squares of the
+  activations against the table (and the jaw pose against :data:`AU_JAW`), the function the
+  fitter uses to report AUs.
+
+Units: AU intensities and activations are dimensionless in [0, 1]; jaw in degrees and mm.
+"""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+
+from .errors import RigError
+
+__all__ = [
+    "AU_MUSCLES",
+    "AU_JAW",
+    "AU_NAMES",
+    "EMOTIONS",
+    "parse_aus",
+    "expand_au",
+    "au_matrix",
+    "aus_to_controls",
+    "emotion_controls",
+    "au_intensities",
+]
+
+#: AU -> {muscle base name: activation at AU intensity 1}.
+AU_MUSCLES: dict[str, dict[str, float]] = {
+    "AU1": {"frontalis_medial": 1.0},
+    "AU2": {"frontalis_lateral": 1.0},
+    "AU4": {"corrugator": 1.0, "procerus": 0.6},
+    "AU5": {"levator_palpebrae": 1.0},
+    "AU6": {"orbicularis_oculi": 0.8},
+    "AU7": {"orbicularis_oculi": 0.4, "orbicularis_oculi_palpebral": 0.3},
+    "AU9": {"levator_labii_superioris_alaeque_nasi": 1.0, "procerus": 0.4},
+    "AU10": {"levator_labii_superioris": 1.0},
+    "AU11": {"zygomaticus_minor": 1.0},
+    "AU12": {"zygomaticus_major": 1.0},
+    "AU13": {"levator_anguli_oris": 1.0},
+    "AU14": {"buccinator": 1.0},
+    "AU15": {"depressor_anguli_oris": 1.0},
+    "AU16": {"depressor_labii_inferioris": 1.0},
+    "AU17": {"mentalis": 1.0},
+    "AU18": {"orbicularis_oris": 0.7},
+    "AU20": {"risorius": 1.0, "platysma": 0.3},
+    "AU21": {"platysma": 1.0},
+    "AU22": {"orbicularis_oris": 0.5},
+    "AU23": {"orbicularis_oris": 1.0},
+    "AU24": {"orbicularis_oris": 0.7, "mentalis": 0.4},
+    "AU25": {"depressor_labii_inferioris": 0.4},
+    "AU27": {"depressor_labii_inferioris": 0.3},
+    "AU28": {"orbicularis_oris": 0.9},
+    "AU38": {"nasalis": 1.0},
+    "AU39": {"nasalis": 0.6},
+    "AU43": {"orbicularis_oculi_palpebral": 1.0},
+    "AU45": {"orbicularis_oculi_palpebral": 1.0},
+    "AU46": {"orbicularis_oculi_palpebral": 1.0},
+}
+
+#: Jaw AUs at intensity 1: pitch (deg, opening), yaw (deg, to the subject's left), protrusion (mm).
+AU_JAW: dict[str, tuple[float, float, float]] = {
+    "AU25": (2.0, 0.0, 0.0),
+    "AU26": (10.0, 0.0, 0.0),
+    "AU27": (18.0, 0.0, 0.0),
+    "AU29": (0.0, 0.0, 5.0),
+    "AU30": (0.0, 4.0, 0.0),
+}
+
+#: AUs of the cheek puff (air pressure; value = puff at intensity 1).
+AU_PUFF = {"AU33": 1.0, "AU34": 1.0}
+
+AU_NAMES: tuple[str, ...] = tuple(sorted(set(AU_MUSCLES) | set(AU_JAW) | set(AU_PUFF),
+                                         key=lambda s: int(s[2:])))
+
+#: Emotion prototypes (Ekman & Friesen): AU -> intensity.
+EMOTIONS: dict[str, dict[str, float]] = {
+    "happiness": {"AU6": 1.0, "AU12": 1.0},
+    "sadness": {"AU1": 1.0, "AU4": 0.8, "AU15": 1.0},
+    "surprise": {"AU1": 1.0, "AU2": 1.0, "AU5": 1.0, "AU26": 1.0},
+    "fear": {"AU1": 1.0, "AU2": 0.8, "AU4": 0.7, "AU5": 1.0, "AU20": 1.0, "AU26": 0.7},
+    "anger": {"AU4": 1.0, "AU5": 0.7, "AU7": 1.0, "AU23": 1.0},
+    "disgust": {"AU9": 1.0, "AU15": 0.8, "AU16": 0.7},
+}
+
+_AU_RE = re.compile(r"^\s*AU\s*(\d+)\s*([LR])?\s*$", re.IGNORECASE)
+
+
+def _canon(au: str) -> tuple[str, str | None]:
+    m = _AU_RE.match(str(au))
+    if not m:
+        raise RigError(f"not an action unit: {au!r}; write e.g. 'AU12', 'AU12L' or 'AU12R'.")
+    base = f"AU{int(m.group(1))}"
+    side = m.group(2).upper() if m.group(2) else None
+    if base not in AU_NAMES:
+        raise RigError(f"action unit {base} is not modelled; known AUs: {', '.join(AU_NAMES)}.")
+    return base, side
+
+
+def parse_aus(specs) -> dict[str, float]:
+    """Parse ``["AU12=0.8", "AU26"]`` (or one comma-separated string) into ``{AU: intensity}``.
+
+    A missing value means 1. Raises :class:`RigError` on malformed items or values outside
+    [0, 1].
+    """
+    if isinstance(specs, str):
+        specs = [s for s in specs.split(",") if s.strip()]
+    out: dict[str, float] = {}
+    for item in specs:
+        name, _, val = str(item).partition("=")
+        base, side = _canon(name)
+        try:
+            v = float(val) if val.strip() else 1.0
+        except ValueError:
+            raise RigError(f"bad AU intensity in {item!r}; use a number in [0, 1].") from None
+        if not 0.0 <= v <= 1.0:
+            raise RigError(f"AU intensity in {item!r} must be in [0, 1].")
+        out[base + (side or "")] = v
+    return out
+
+
+def expand_au(au: str, muscle_names) -> dict[str, float]:
+    """Controls of one AU at intensity 1: ``{control name: activation}`` for the rig's
+    ``muscle_names`` (bilateral muscles on both sides, or one side for ``AUxxL``/``AUxxR``;
+    a mid-line muscle gets half the weight in a unilateral AU)."""
+    base, side = _canon(au)
+    names = set(muscle_names)
+    out: dict[str, float] = {}
+    for m, w in AU_MUSCLES.get(base, {}).items():
+        if m in names:
+            out[m] = out.get(m, 0.0) + (w if side is None else 0.5 * w)
+        sides = ("L", "R") if side is None else (side,)
+        for s in sides:
+            n = f"{m}_{s}"
+            if n in names:
+                out[n] = out.get(n, 0.0) + w
+    return out
+
+
+def au_matrix(muscle_names, aus=None) -> tuple[list[str], np.ndarray]:
+    """The AU table as a matrix for the rig's controls.
+
+    Args:
+        muscle_names: the rig's control names (``rig.muscle_names``).
+        aus: AU names (default: every muscle AU, bilateral AUs split into their ``L``/``R``
+            variants).
+
+    Returns:
+        ``(aus, A)`` with ``A`` ``(len(aus), M)``: row ``i`` = activations of AU ``i`` at 1.
+    """
+    names = list(muscle_names)
+    if aus is None:
+        aus = []
+        for base in AU_MUSCLES:
+            row = expand_au(base, names)
+            if not row:
+                continue
+            left = expand_au(base + "L", names)
+            bilateral = any(n.endswith(("_L", "_R")) for n in row)
+            aus += [base + "L", base + "R"] if bilateral and left != row else [base]
+    A = np.zeros((len(aus), len(names)))
+    for i, au in enumerate(aus):
+        for n, w in expand_au(au, names).items():
+            A[i, names.index(n)] += w
+    return list(aus), A
+
+
+def aus_to_controls(aus: dict, muscle_names):
+    """Activations, jaw pose and cheek puff of a set of AUs.
+
+    Args:
+        aus: ``{AU: intensity}`` (e.g. from :func:`parse_aus`), intensities in [0, 1].
+        muscle_names: the rig's control names.
+
+    Returns:
+        ``(activations (M,) in [0, 1], JawPose, cheek_puff)``; contributions add up and are
+        clipped to [0, 1] (jaw: to its limits by the jaw model).
+    """
+    from .anatomy.jaw import JawPose
+
+    names = list(muscle_names)
+    a = np.zeros(len(names))
+    jaw = np.zeros(3)
+    puff = 0.0
+    for au, v in aus.items():
+        base, side = _canon(au)
+        v = float(v)
+        for n, w in expand_au(au, names).items():
+            a[names.index(n)] += v * w
+        if base in AU_JAW:
+            j = np.array(AU_JAW[base], float)
+            if base == "AU30" and side == "R":
+                j[1] = -j[1]
+            jaw += v * j
+        puff += v * AU_PUFF.get(base, 0.0)
+    return np.clip(a, 0.0, 1.0), JawPose(float(jaw[0]), float(jaw[1]), float(jaw[2])), float(min(puff, 1.0))
+
+
+def emotion_controls(name: str, muscle_names, intensity: float = 1.0):
+    """:func:`aus_to_controls` of an :data:`EMOTIONS` preset scaled by ``intensity``."""
+    key = name.lower()
+    if key not in EMOTIONS:
+        raise RigError(f"unknown emotion {name!r}; presets: {sorted(EMOTIONS)}.")
+    return aus_to_controls({k: v * intensity for k, v in EMOTIONS[key].items()}, muscle_names)
+
+
+def au_intensities(activations, muscle_names, jaw=None, *, cheek_puff: float = 0.0) -> dict[str, float]:
+    """Read AU intensities out of muscle activations (and a jaw pose): the inverse of the table.
+
+    Muscle AUs: non-negative least squares ``min_i |A^T i - a|``, ``i >= 0`` over the
+    unilateral AU variants (:func:`au_matrix`; AUs whose rows duplicate an earlier AU's are
+    left out, see the module doc), then clipped to [0, 1]; a bilateral AU is reported as the
+    mean of its sides, and its sides as ``AUxxL`` / ``AUxxR``. Jaw AUs: the opening splits
+    into AU26 (up to 10 degrees) and AU27 (beyond), protrusion gives AU29, yaw AU30
+    (``AU30L``/``AU30R`` by direction).
+
+    Args:
+        activations: ``(M,)`` in [0, 1], ordered as ``muscle_names``.
+        muscle_names: the rig's control names.
+        jaw: optional :class:`~jaxface.anatomy.jaw.JawPose` (scalars).
+        cheek_puff: the fitted puff (reported as AU34).
+
+    Returns:
+        ``{AU: intensity}`` sorted by AU number, plus the L/R variants.
+    """
+    from scipy.optimize import nnls
+
+    a = np.asarray(activations, dtype=np.float64).ravel()
+    names = list(muscle_names)
+    if a.shape[0] != len(names):
+        raise RigError(f"activations have {a.shape[0]} entries, muscle_names {len(names)}.")
+    aus, A = au_matrix(names)
+    keep, seen = [], []
+    for i, row in enumerate(A):
+        if any(np.allclose(row, r) for r in seen) or not row.any():
+            continue
+        seen.append(row)
+        keep.append(i)
+    aus = [aus[i] for i in keep]
+    A = A[keep]
+    x, _ = nnls(A.T, a)
+    x = np.clip(x, 0.0, 1.0)
+    out: dict[str, float] = {}
+    for au, v in zip(aus, x):
+        out[au] = float(v)
+        if au.endswith(("L", "R")):
+            base = au[:-1]
+            out[base] = out.get(base, 0.0) + 0.5 * float(v)
+    if jaw is not None:
+        p = float(np.asarray(jaw.pitch_deg))
+        y = float(np.asarray(jaw.yaw_deg))
+        q = float(np.asarray(jaw.protrusion_mm))
+        out["AU26"] = float(np.clip(p / AU_JAW["AU26"][0], 0.0, 1.0))
+        out["AU27"] = float(np.clip((p - AU_JAW["AU26"][0]) / (AU_JAW["AU27"][0] - AU_JAW["AU26"][0]), 0.0, 1.0))
+        out["AU29"] = float(np.clip(q / AU_JAW["AU29"][2], 0.0, 1.0))
+        out["AU30L"] = float(np.clip(y / AU_JAW["AU30"][1], 0.0, 1.0))
+        out["AU30R"] = float(np.clip(-y / AU_JAW["AU30"][1], 0.0, 1.0))
+        out["AU30"] = max(out["AU30L"], out["AU30R"])
+    if cheek_puff:
+        out["AU34"] = float(np.clip(cheek_puff, 0.0, 1.0))
+
+    def key(k):
+        m = _AU_RE.match(k)
+        return (int(m.group(1)), m.group(2) or "")
+
+    return dict(sorted(out.items(), key=lambda kv: key(kv[0])))

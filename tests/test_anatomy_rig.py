@@ -1,0 +1,245 @@
+"""The forward model on the default head and the ICT face: AU regions and directions, rest
+state, muscle volume and bulge, lips vs teeth, jaw limits, vmap, gradients vs finite
+differences, dynamic animation.
+
+Compilations are shared: one vmapped synthesis evaluates every case (including the
+finite-difference points), one function computes a forward and a reverse derivative."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxface import facs
+from jaxface.anatomy.jaw import JawPose
+from jaxface.anatomy.muscles import muscle_volumes
+from jaxface.anatomy.rig import build_rig, simulate, synthesize, synthesize_state
+from jaxface.errors import RigError
+from jaxface.head import generic_head
+
+EPS = 1e-4          # finite-difference step (activations / degrees)
+
+
+@pytest.fixture(scope="module")
+def rig():
+    return build_rig(generic_head())
+
+
+def _case_list(rig):
+    n = rig.n_controls
+    cases = {"rest": (np.zeros(n), 0.0)}
+    for au in ("AU1", "AU2", "AU4", "AU9", "AU12", "AU12L", "AU15", "AU20", "AU43", "AU23"):
+        a, _, _ = facs.aus_to_controls({au: 1.0}, rig.muscle_names)
+        cases[au] = (a, 0.0)
+    cases["AU26"] = (np.zeros(n), 10.0)
+    cases["pitch30"] = (np.zeros(n), 30.0)
+    cases["pitch60"] = (np.zeros(n), 60.0)
+    a, j, _ = facs.aus_to_controls({"AU20": 1.0, "AU23": 1.0, "AU12": 1.0, "AU14": 1.0}, rig.muscle_names)
+    cases["lips_stretched_open"] = (a, 16.0)
+    rng = np.random.default_rng(0)
+    a0 = np.clip(rng.uniform(0.0, 0.4, n), 0, 1)
+    da = rng.normal(size=n)
+    cases["fd0"] = (a0, 6.0)
+    cases["fd+a"] = (a0 + EPS * da, 6.0)
+    cases["fd-a"] = (a0 - EPS * da, 6.0)
+    cases["fd+p"] = (a0, 6.0 + EPS)
+    cases["fd-p"] = (a0, 6.0 - EPS)
+    return cases, (a0, da)
+
+
+@pytest.fixture(scope="module")
+def results(rig):
+    cases, fd = _case_list(rig)
+    names = list(cases)
+    A = jnp.asarray(np.stack([cases[k][0] for k in names]))
+    P = jnp.asarray(np.array([cases[k][1] for k in names]))
+
+    @jax.jit
+    def batch(A, P):
+        st = jax.vmap(lambda a, p: synthesize_state(rig, a, JawPose(p)))(A, P)
+        return st.skin, st.muscles, st.R, st.t
+
+    skin, mus, R, t = batch(A, P)
+    out = {k: (np.asarray(skin[i]), np.asarray(mus[i]), np.asarray(R[i]), np.asarray(t[i]))
+           for i, k in enumerate(names)}
+    return out, fd
+
+
+def _lm(rig, name):
+    """Index of the skin vertex nearest a landmark."""
+    p = rig.info.landmarks[name]
+    return int(np.argmin(np.linalg.norm(np.asarray(rig.rest) - p, axis=1)))
+
+
+def _disp(results, rig, case, name):
+    i = _lm(rig, name)
+    return results[0][case][0][i] - np.asarray(rig.rest)[i]
+
+
+def test_rest_state_is_a_fixed_point(rig, results):
+    np.testing.assert_allclose(results[0]["rest"][0], np.asarray(rig.rest), atol=1e-5)
+
+
+def test_au12_moves_mouth_corners_up_and_out(rig, results):
+    for side, sgn in (("Left", 1), ("Right", -1)):
+        d = _disp(results, rig, "AU12", f"{side} mouth corner")
+        assert d[1] > 1.0 and sgn * d[0] > 0.5, (side, d)
+    # the one-sided variant moves only the left corner
+    dl = _disp(results, rig, "AU12L", "Left mouth corner")
+    dr = _disp(results, rig, "AU12L", "Right mouth corner")
+    assert np.linalg.norm(dl) > 1.0 and np.linalg.norm(dr) < 0.25 * np.linalg.norm(dl)
+
+
+def test_brow_aus(rig, results):
+    for side, sgn in (("left", 1), ("right", -1)):
+        d1 = _disp(results, rig, "AU1", f"Inner {side} eyebrow")
+        assert d1[1] > 1.0, d1                                   # AU1 raises the inner brow
+        d2 = _disp(results, rig, "AU2", f"Outer {side} eyebrow")
+        assert d2[1] > 1.0, d2                                   # AU2 raises the outer brow
+        d4 = _disp(results, rig, "AU4", f"Inner {side} eyebrow")
+        assert d4[1] < -0.3 and sgn * d4[0] < -0.3, d4          # AU4: down and inward
+
+
+def test_lower_face_aus(rig, results):
+    for side, sgn in (("Left", 1), ("Right", -1)):
+        d15 = _disp(results, rig, "AU15", f"{side} mouth corner")
+        assert d15[1] < -0.5, d15                                # AU15 pulls the corners down
+        d20 = _disp(results, rig, "AU20", f"{side} mouth corner")
+        assert sgn * d20[0] > 0.5, d20                           # AU20 stretches outward
+        d9 = _disp(results, rig, "AU9", f"{side} nose peak")
+        assert d9[1] > 0.3, d9                                   # AU9 lifts the nose wings
+    d23 = _disp(results, rig, "AU23", "Left mouth corner")
+    assert d23[0] < -0.3                                         # AU23 narrows the mouth
+
+
+def test_au26_opens_the_mouth(rig, results):
+    up = _disp(results, rig, "AU26", "Upper lip inner middle")
+    lo = _disp(results, rig, "AU26", "Lower lip inner middle")
+    chin = _disp(results, rig, "AU26", "Chin middle")
+    assert lo[1] - up[1] < -5.0 and chin[1] < -8.0, (up, lo, chin)
+    assert abs(up[1]) < 0.5 * abs(lo[1])
+
+
+def test_au43_closes_the_upper_lid(rig, results):
+    skin = results[0]["AU43"][0]
+    rest = np.asarray(rig.rest)
+    lids = np.asarray(rig.skin.lid_ids)[np.asarray(rig.skin.lid_upper)]
+    assert (skin[lids, 1] - rest[lids, 1]).min() < -2.0
+
+
+@pytest.mark.parametrize("case,far", [("AU12", "upper"), ("AU15", "upper"), ("AU20", "upper"),
+                                      ("AU1", "lower"), ("AU2", "lower"), ("AU4", "lower"),
+                                      ("AU43", "lower")])
+def test_nothing_far_away_moves(rig, results, case, far):
+    fr = rig.info.frame
+    loc = fr.to_local(np.asarray(rig.rest))
+    d = np.linalg.norm(results[0][case][0] - np.asarray(rig.rest), axis=1)
+    assert d.max() > 1.0
+    back = loc[:, 2] < -90.0                       # back of the head (behind the ears)
+    assert d[back].max() < 0.05
+    region = loc[:, 1] > 45.0 if far == "upper" else loc[:, 1] < -45.0   # forehead / mouth-chin
+    assert d[region].max() < 0.1 * d.max() + 0.05, (case, d[region].max(), d.max())
+
+
+def test_jaw_limits_hold(rig, results):
+    # beyond the limit the pose saturates: 30 and 60 degrees give the same face
+    a = results[0]["pitch30"][0]
+    b = results[0]["pitch60"][0]
+    np.testing.assert_allclose(a, b, atol=1e-6)
+    for R in (results[0]["pitch30"][2], results[0]["pitch60"][2]):
+        ang = np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1)))
+        assert ang <= 18.0 + 1e-9
+
+
+def test_lips_never_penetrate_the_teeth(rig, results):
+    sk = rig.skin
+    for case in ("lips_stretched_open", "AU23", "AU20", "AU26", "rest"):
+        x, _, R, t = results[0][case]
+        for g, planes in ((sk.upper_hull, None), (sk.lower_hull, sk.lower_planes)):
+            if g is None:
+                continue
+            ids = np.asarray(g.c.idx[:, 0])
+            N = np.asarray(g.c.normals) if planes is None else np.asarray(planes[0]) @ R.T
+            d = np.asarray(g.c.offsets) if planes is None else np.asarray(planes[1]) + N @ t
+            sd = (x[ids] @ N.T - d).max(axis=1)
+            clr = np.asarray(g.c.clearance)
+            assert (sd - clr).min() > -1e-6, case
+
+
+def test_contracting_muscles_bulge_and_keep_their_volume(rig, results):
+    ms = rig.muscles
+    v0 = np.asarray(muscle_volumes(ms, ms.rest))
+    for case, mus in (("AU12", "zygomaticus_major_L"), ("AU1", "frontalis_medial_L"),
+                      ("AU23", "orbicularis_oris"), ("AU26", "masseter_L")):
+        x = results[0][case][1]
+        v = np.asarray(muscle_volumes(ms, jnp.asarray(x)))
+        k = ms.names.index(mus)
+        assert abs(v[k] / v0[k] - 1.0) < 0.02, (case, mus, v[k] / v0[k])
+    # bulge: the contracted zygomaticus gets thicker (top-to-bottom distance)
+    k = ms.names.index("zygomaticus_major_L")
+    s, e = ms.offsets[k], ms.offsets[k + 1]
+    half = (e - s) // 2
+
+    def thick(x):
+        return np.linalg.norm(x[s + half:e] - x[s:s + half], axis=1).mean()
+
+    assert thick(results[0]["AU12"][1]) > 1.1 * thick(np.asarray(ms.rest))
+
+
+def test_gradients_match_finite_differences_and_vmap_matches_single(rig, results):
+    out, (a0, da) = results
+    fd_a = (out["fd+a"][0] - out["fd-a"][0]) / (2 * EPS)
+    fd_p = (out["fd+p"][0] - out["fd-p"][0]) / (2 * EPS)
+    w = np.random.default_rng(1).normal(size=fd_a.shape)
+
+    @jax.jit
+    def derivs(a, p, ta, tp, w):
+        f = lambda a, p: synthesize(rig, a, JawPose(p))  # noqa: E731
+        y, jv = jax.jvp(f, (a, p), (ta, tp))
+        _, vjp = jax.vjp(f, a, p)
+        ga, gp = vjp(w)
+        return y, jv, ga, gp
+
+    a0j, p0 = jnp.asarray(a0), jnp.asarray(6.0)
+    y, jv_a, ga, gp = derivs(a0j, p0, jnp.asarray(da), jnp.asarray(0.0), jnp.asarray(w))
+    # the un-batched call equals its member of the vmapped batch
+    np.testing.assert_allclose(np.asarray(y), out["fd0"][0], atol=1e-9)
+    scale = np.abs(fd_a).max()
+    assert scale > 1e-2
+    np.testing.assert_allclose(np.asarray(jv_a), fd_a, atol=2e-3 * scale)
+    # reverse mode: <w, J da> = <J^T w, da>, and the jaw column
+    assert float(np.dot(np.asarray(ga), da)) == pytest.approx(float(np.sum(w * fd_a)), rel=2e-3)
+    assert float(gp) == pytest.approx(float(np.sum(w * fd_p)), rel=2e-3)
+    assert np.all(np.isfinite(np.asarray(ga)))
+
+
+def test_bad_activation_shape(rig):
+    with pytest.raises(RigError, match="shape"):
+        synthesize(rig, jnp.zeros(rig.n_controls + 1), JawPose())
+    with pytest.raises(RigError, match="unknown muscle"):
+        rig.activations({"not_a_muscle": 1.0})
+
+
+# ------------------------------------------------------------------------------ ICT face
+def test_ict_face_builds_and_animates(shared):
+    from jaxface.anatomy.ict import load_ict_face
+
+    f = load_ict_face(shared("data", "ict", "ict_face.npz"),
+                      shared("data", "bosphorus_style", "truth.json"))
+    rig = build_rig(f.skin, f.landmarks, upper_teeth=f.upper_teeth, lower_teeth=f.lower_teeth)
+    assert rig.n_vertices == 9409
+    n = 6
+    a12, _, _ = facs.aus_to_controls({"AU12": 1.0}, rig.muscle_names)
+    ramp = np.linspace(0.0, 1.0, n)
+    zero = jnp.zeros(n)
+    run = jax.jit(lambda A, p: simulate(rig, A, JawPose(p, zero, zero)))
+    smile = np.asarray(run(jnp.asarray(ramp[:, None] * a12[None]), zero))
+    jaw = np.asarray(run(jnp.zeros((n, rig.n_controls)), jnp.asarray(8.0 * ramp)))
+    rest = np.asarray(rig.rest)
+    np.testing.assert_allclose(smile[0], rest, atol=1e-6)          # starts at rest
+    i = int(np.argmin(np.linalg.norm(rest - f.landmarks["Left mouth corner"], axis=1)))
+    j = int(np.argmin(np.linalg.norm(rest - f.landmarks["Chin middle"], axis=1)))
+    d = smile[-1, i] - rest[i]
+    assert d[1] > 0.5 and d[0] > 0.3, d                              # smile: corner up and out
+    assert jaw[-1, j, 1] - rest[j, 1] < -3.0                         # the jaw opened
+    assert np.all(np.isfinite(smile)) and np.all(np.isfinite(jaw))

@@ -1,0 +1,96 @@
+"""FACS tables: AU -> controls, emotion presets, and the inverse readout (NNLS)."""
+
+import numpy as np
+import pytest
+
+from jaxface import facs
+from jaxface.anatomy.muscle_map import load_muscle_map
+from jaxface.errors import RigError
+
+
+@pytest.fixture(scope="module")
+def names():
+    return tuple(s.name for s in load_muscle_map() if s.active)
+
+
+def test_every_table_muscle_exists_in_the_default_map(names):
+    bases = {n[:-2] if n.endswith(("_L", "_R")) else n for n in names}
+    for au, row in facs.AU_MUSCLES.items():
+        for m in row:
+            assert m in bases, f"{au} refers to {m}, which the default map does not have"
+
+
+def test_parse_aus():
+    assert facs.parse_aus("AU12=0.8,AU26") == {"AU12": 0.8, "AU26": 1.0}
+    assert facs.parse_aus(["au12l=0.5"]) == {"AU12L": 0.5}
+    for bad in ("AU12=2", "AUx", "AU99=0.5", "AU12=abc"):
+        with pytest.raises(RigError):
+            facs.parse_aus(bad)
+
+
+def test_bilateral_and_unilateral_expansion(names):
+    both = facs.expand_au("AU12", names)
+    assert both == {"zygomaticus_major_L": 1.0, "zygomaticus_major_R": 1.0}
+    assert facs.expand_au("AU12L", names) == {"zygomaticus_major_L": 1.0}
+    assert facs.expand_au("AU12R", names) == {"zygomaticus_major_R": 1.0}
+    # a mid-line muscle gets half of its weight in a one-sided AU
+    assert facs.expand_au("AU4L", names)["procerus"] == pytest.approx(0.3)
+
+
+def test_controls_of_aus_and_jaw(names):
+    a, jaw, puff = facs.aus_to_controls({"AU12": 0.5, "AU26": 1.0, "AU34": 0.4}, names)
+    i = names.index("zygomaticus_major_L")
+    assert a[i] == pytest.approx(0.5) and a.sum() == pytest.approx(1.0)
+    assert float(jaw.pitch_deg) == pytest.approx(10.0) and puff == pytest.approx(0.4)
+    a, jaw, _ = facs.aus_to_controls({"AU30R": 1.0, "AU29": 0.5}, names)
+    assert float(jaw.yaw_deg) < 0 and float(jaw.protrusion_mm) == pytest.approx(2.5)
+    assert not a.any()
+
+
+@pytest.mark.parametrize("emotion,aus", [
+    ("happiness", {"AU6", "AU12"}), ("sadness", {"AU1", "AU4", "AU15"}),
+    ("surprise", {"AU1", "AU2", "AU5", "AU26"}), ("fear", {"AU1", "AU2", "AU4", "AU5", "AU20", "AU26"}),
+    ("anger", {"AU4", "AU5", "AU7", "AU23"}), ("disgust", {"AU9", "AU15", "AU16"})])
+def test_emotion_presets(emotion, aus, names):
+    assert set(facs.EMOTIONS[emotion]) == aus
+    a, jaw, _ = facs.emotion_controls(emotion, names)
+    assert a.max() <= 1.0 and a.min() >= 0.0 and a.any()
+    assert (float(jaw.pitch_deg) > 0) == ("AU26" in aus)
+
+
+def test_readout_inverts_the_table(names):
+    rng = np.random.default_rng(3)
+    aus, A = facs.au_matrix(names)
+    # a random sparse set of distinguishable AUs
+    pick = {"AU1L": 0.7, "AU1R": 0.6, "AU12L": 0.9, "AU15R": 0.4, "AU9L": 0.5, "AU9R": 0.5,
+            "AU17L": 0.3, "AU17R": 0.3, "AU20L": 0.8}
+    a = np.zeros(len(names))
+    for au, v in pick.items():
+        a += v * A[aus.index(au)]
+    a = np.clip(a + rng.normal(0, 1e-4, a.shape), 0, 1)
+    out = facs.au_intensities(a, names)
+    for au, v in pick.items():
+        assert out[au] == pytest.approx(v, abs=2e-3), au
+    assert out["AU12"] == pytest.approx(0.45, abs=2e-3)          # mean of the sides
+    assert out["AU12L"] > out["AU12R"] + 0.8                     # side is recovered
+    strongest = sorted((k for k in out if not k.endswith(("L", "R"))), key=lambda k: -out[k])[:3]
+    assert "AU20" not in strongest or out["AU20"] == pytest.approx(0.4, abs=5e-3)
+
+
+def test_readout_of_jaw_and_emotions(names):
+    from jaxface.anatomy.jaw import JawPose
+
+    out = facs.au_intensities(np.zeros(len(names)), names, JawPose(14.0, -4.0, 2.5))
+    assert out["AU26"] == pytest.approx(1.0) and out["AU27"] == pytest.approx(0.5)
+    assert out["AU29"] == pytest.approx(0.5) and out["AU30R"] == pytest.approx(1.0)
+    a, jaw, _ = facs.emotion_controls("surprise", names)
+    out = facs.au_intensities(a, names, jaw)
+    top = sorted((k for k in out if not k.endswith(("L", "R"))), key=lambda k: -out[k])[:4]
+    assert set(top) == {"AU1", "AU2", "AU5", "AU26"}
+
+
+def test_bad_inputs(names):
+    with pytest.raises(RigError, match="entries"):
+        facs.au_intensities(np.zeros(3), names)
+    with pytest.raises(RigError, match="unknown emotion"):
+        facs.emotion_controls("boredom", names)
