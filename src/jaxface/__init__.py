@@ -13,7 +13,8 @@ name that needs it is used):
 * meshes and landmarks: :class:`TriMesh`, :func:`load_mesh`, :func:`save_mesh`,
   :class:`Landmarks`, :func:`generic_head`
 * morphs: :mod:`jaxface.rbf` (Hardy multiquadric and thin-plate-spline morphs)
-* simulation: :mod:`jaxface.pbd` (the PBD solver)
+* simulation: :mod:`jaxface.pbd` (the PBD solver), :func:`build_rig`, :func:`synthesize`,
+  :class:`JawPose` (the anatomical face rig), :mod:`jaxface.facs` (AU tables)
 * errors: :mod:`jaxface.errors` (every user-facing error derives from ``JaxfaceError``)
 """
 
@@ -37,6 +38,9 @@ _LAZY = {
     "load_scan": "jaxface.io",
     "generic_head": "jaxface.head",
     "JaxfaceError": "jaxface.errors",
+    "build_rig": "jaxface.anatomy",
+    "synthesize": "jaxface.anatomy",
+    "JawPose": "jaxface.anatomy",
 }
 _SUBMODULES = {
     "rbf", "pbd", "reference", "mesh", "surface", "landmarks", "errors", "testing", "head", "render",
