@@ -45,6 +45,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import LandmarkError
+from ..landmarks import FACE_LABELS
 
 __all__ = [
     "FaceFrame",
@@ -62,30 +63,7 @@ REFERENCE_EYE_TO_CHIN_MM = 94.3
 REFERENCE_TILT_DEG = 10.66
 
 #: The landmarks the anatomical frame needs (the 22 face labels of Bosphorus, without ears).
-REQUIRED_LABELS: tuple[str, ...] = (
-    "Outer left eyebrow",
-    "Middle left eyebrow",
-    "Inner left eyebrow",
-    "Inner right eyebrow",
-    "Middle right eyebrow",
-    "Outer right eyebrow",
-    "Outer left eye corner",
-    "Inner left eye corner",
-    "Inner right eye corner",
-    "Outer right eye corner",
-    "Nose saddle left",
-    "Nose saddle right",
-    "Left nose peak",
-    "Nose tip",
-    "Right nose peak",
-    "Left mouth corner",
-    "Upper lip outer middle",
-    "Right mouth corner",
-    "Upper lip inner middle",
-    "Lower lip inner middle",
-    "Lower lip outer middle",
-    "Chin middle",
-)
+REQUIRED_LABELS: tuple[str, ...] = FACE_LABELS
 
 # reference offsets (mm in the reference face), left side (+x); the right side mirrors x
 _CONDYLE = np.array([50.0, -28.0, -72.0])
