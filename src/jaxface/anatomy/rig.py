@@ -317,7 +317,14 @@ def synthesize(rig: Rig, activations, jaw: JawPose | None = None, cheek_puff=0.0
 
     Raises:
         RigError: activations of the wrong shape (use ``jax.vmap`` for batches).
+
+    A rig built with ``backend="ltw"`` is synthesized by
+    :func:`jaxface.ltw.rig.synthesize_ltw` (same controls, same units).
     """
+    if getattr(rig, "backend", "pbd") == "ltw":
+        from ..ltw.rig import synthesize_ltw
+
+        return synthesize_ltw(rig, activations, jaw, cheek_puff)
     jaw = JawPose() if jaw is None else jaw
     return _synth(rig, activations, jaw, cheek_puff).skin
 
