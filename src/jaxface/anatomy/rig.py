@@ -73,6 +73,8 @@ class Rig(eqx.Module):
         info: static :class:`RigInfo` (build-time objects).
     """
 
+    backend = "pbd"  # which simulator synthesize() runs; LTWRig says "ltw"
+
     jaw: JawModel
     muscles: MuscleSystem
     skin: SkinSystem
@@ -306,7 +308,8 @@ def synthesize(rig: Rig, activations, jaw: JawPose | None = None, cheek_puff=0.0
     """Synthesize the face for muscle activations and a jaw pose (quasi-static).
 
     Args:
-        rig: the :class:`Rig`.
+        rig: the :class:`Rig`, or a :class:`jaxface.ltw.rig.LTWRig` from
+            ``build_rig(..., backend="ltw")``.
         activations: ``(M,)`` in [0, 1], ordered as ``rig.muscle_names``.
         jaw: :class:`JawPose` (degrees, mm; smoothly clamped to the limits); neutral if None.
         cheek_puff: AU33/34 air pressure in [0, 1] (outward cheek displacement of
@@ -321,7 +324,7 @@ def synthesize(rig: Rig, activations, jaw: JawPose | None = None, cheek_puff=0.0
     A rig built with ``backend="ltw"`` is synthesized by
     :func:`jaxface.ltw.rig.synthesize_ltw` (same controls, same units).
     """
-    if getattr(rig, "backend", "pbd") == "ltw":
+    if rig.backend == "ltw":
         from ..ltw.rig import synthesize_ltw
 
         return synthesize_ltw(rig, activations, jaw, cheek_puff)
