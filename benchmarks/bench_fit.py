@@ -1,0 +1,271 @@
+"""Benchmark of the inverse fit (issue 7): accuracy on every Bosphorus-style scan against the
+ground-truth meshes, the baselines, the AU readout, a synthetic round trip with Jacobian
+conditioning, and the time per fit (single scan and batched).
+
+Run from the repository root (needs the shared data: ``JAXFACE_SHARED`` or ``../shared``)::
+
+    python benchmarks/bench_fit.py [--subjects bs900,bs901] [--no-round-trip] [--no-single]
+                                   [--round-trip-ict] [--exact-steps N]
+
+Measures (units mm, degrees, seconds):
+
+* per subject: the subject build (template registration, rig, compilation, reduced model);
+* per scan (all codes, both subjects; fitted as one ``jax.vmap`` batch per subject): the
+  issue-7 error of the fitted skin against ``<stem>.truth.ply`` over the evaluation region
+  (:func:`jaxface.fit.evaluation.evaluate_against_truth`), the same for B0 and B1, the ratio
+  B0 / fit, scan-to-fit metrics, solver status and steps, jaw pose, and the AU readout: the
+  rank of each AU named by the file's code among the fitted bilateral AUs (and the side for
+  ``LFAU_12L``);
+* the neutral scans: registration error (B0 of ``N_N``) against the truth;
+* time per expression scan: one scan alone (cold: includes compiling the solver; warm: a
+  second scan with the compiled solver) and the batch (wall time / number of scans);
+* round trip: activations and a jaw pose synthesised on the default head (and, with
+  ``--round-trip-ict``, on the ICT face) with the rig, scanned by the virtual scanner
+  (:func:`jaxface.io.scanner.scan_mesh`, 1 mm grid), fitted back with every control free:
+  scan match, jaw and activation errors, and the Jacobian's singular values per parameter
+  group, sensitivity and variance inflation factor per parameter.
+
+Prints tables and writes ``benchmarks/results/bench_fit.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+#: AUs named by each scan code (issue 7: "AU12 for LFAU_12, AU1+2+5+26 for E_SURPRISE")
+CODE_AUS = {
+    "UFAU_1": ["AU1"], "UFAU_2": ["AU2"], "UFAU_4": ["AU4"], "LFAU_9": ["AU9"], "LFAU_12": ["AU12"],
+    "LFAU_12L": ["AU12"], "LFAU_20": ["AU20"], "LFAU_26": ["AU26"], "E_HAPPY": ["AU6", "AU12"],
+    "E_SURPRISE": ["AU1", "AU2", "AU5", "AU26"], "N_N": [],
+}
+
+
+def _machine():
+    return {"platform": platform.platform(), "cpus": os.cpu_count(), "load_avg": list(os.getloadavg())}
+
+
+def _au_ranks(aus: dict, expected: list[str]) -> dict:
+    bil = sorted(((k, v) for k, v in aus.items() if k[-1] not in "LR"), key=lambda kv: -kv[1])
+    order = [k for k, _ in bil]
+    return {a: (order.index(a) + 1 if a in order else None) for a in expected}
+
+
+def _stats(d):
+    return {k: (None if v is None else float(v)) for k, v in d.to_dict().items()} if hasattr(d, "to_dict") else d
+
+
+def bench_subject(truth, subject_id: str, opt, *, single: bool) -> dict:
+    from jaxface.fit.evaluation import evaluate_against_truth
+    from jaxface.fit.pipeline import fit_expressions, prepare_subject
+
+    t = time.perf_counter()
+    c = time.process_time()
+    S = prepare_subject(truth.scan(truth.neutral_stem(subject_id)))
+    build = {"wall_s": time.perf_counter() - t, "cpu_s": time.process_time() - c, **S.timings,
+             "n_vertices": int(len(S.forward.rest)), "n_controls": S.forward.n_controls,
+             "n_fit_vertices": int(len(S.fit_ids))}
+    stems = truth.stems(subject_id)
+    out = {"subject": subject_id, "build": build, "scans": []}
+    timing = {}
+    if single:
+        # one scan alone: cold (compiles the solver for a batch of one) and warm
+        for label, code in (("cold", "LFAU_12"), ("warm", "LFAU_26")):
+            stem = f"{subject_id}_{code}_0"
+            t = time.perf_counter()
+            c = time.process_time()
+            (r,) = fit_expressions(S, [truth.scan(stem)], options=opt)
+            timing[f"single_{label}"] = {"scan": stem, "wall_s": time.perf_counter() - t,
+                                         "cpu_s": time.process_time() - c, "solver_s": r.fit.seconds}
+    t = time.perf_counter()
+    c = time.process_time()
+    res = fit_expressions(S, [truth.scan(s) for s in stems], options=opt)
+    wall = time.perf_counter() - t
+    timing["batch"] = {"n_scans": len(stems), "wall_s": wall, "cpu_s": time.process_time() - c,
+                       "per_scan_s": wall / len(stems)}
+    out["timing"] = timing
+    for stem, r in zip(stems, res):
+        rec = truth.records[stem]
+        ev = evaluate_against_truth(r.fitted, truth, stem)
+        b0 = evaluate_against_truth(r.baseline_meshes["B0"], truth, stem)
+        b1 = evaluate_against_truth(r.baseline_meshes["B1"], truth, stem)
+        exp = CODE_AUS.get(rec.code, [])
+        row = {
+            "stem": stem, "code": rec.code, "n_region": ev.n_region,
+            "fit": ev.to_dict()["error"], "B0": b0.to_dict()["error"], "B1": b1.to_dict()["error"],
+            "fit_mean": ev.mean, "B0_mean": b0.mean, "B1_mean": b1.mean,
+            "ratio_B0_over_fit": b0.mean / ev.mean if ev.mean > 0 else None,
+            "scan_to_fit_mean": r.metrics.scan_to_fit["all"].mean,
+            "status": r.status, "steps": r.fit.steps, "jaw": r.jaw,
+            "rigid_correction": [float(v) for v in r.fit.rigid],
+            "jaw_starts": r.fit.starts,
+            "au_ranks": _au_ranks(r.au_intensities, exp),
+            "top_aus": r.strongest_aus(6, bilateral_only=True),
+            "au12_sides": {k: r.au_intensities.get(k) for k in ("AU12L", "AU12R")},
+            "activations": r.activations,
+        }
+        out["scans"].append(row)
+    return out
+
+
+def round_trip(which: str, opt_kw: dict) -> dict:
+    """Synthesise -> scan -> fit back on the default head (or the ICT face)."""
+    from jaxface.anatomy.jaw import JawPose
+    from jaxface.anatomy.rig import build_rig, synthesize
+    from jaxface.fit.metrics import SurfaceIndex
+    from jaxface.fit.pipeline import SubjectOptions, fit_expressions, subject_from_rig
+    from jaxface.fit.solve import FitOptions, jacobian_conditioning, make_priors
+    from jaxface.io.scanner import scan_mesh
+    from jaxface.landmarks import Landmarks
+    from jaxface.mesh import TriMesh
+
+    t0 = time.perf_counter()
+    if which == "default_head":
+        from jaxface.head import generic_head
+
+        head = generic_head()
+        rig = build_rig(head)
+        face_mask = head.face_mask
+    else:
+        from jaxface.anatomy.ict import load_ict_face
+        from jaxface.testing import shared_path
+
+        ict = load_ict_face(shared_path("data", "ict", "ict_face.npz"),
+                            shared_path("data", "bosphorus_style", "truth.json"))
+        rig = build_rig(ict.skin, ict.landmarks, upper_teeth=ict.upper_teeth, lower_teeth=ict.lower_teeth)
+        face_mask = None
+    tris = np.asarray(rig.triangles)
+    lm = rig.info.landmarks
+    cp = SurfaceIndex(np.asarray(rig.rest), tris).query(np.asarray(lm.positions))
+
+    def scan_of(x):
+        pos = np.einsum("kc,kcd->kd", cp.bary, x[tris[cp.triangles]])
+        return scan_mesh(TriMesh(x, tris, validate=False), 1.0, landmarks=Landmarks(lm.names, pos),
+                         max_angle_deg=80.0)
+
+    truth_acts = {"zygomaticus_major_L": 0.6, "zygomaticus_major_R": 0.45, "frontalis_medial_L": 0.5,
+                  "frontalis_medial_R": 0.5, "corrugator_R": 0.3, "orbicularis_oris": 0.25,
+                  "depressor_anguli_oris_L": 0.4, "levator_labii_superioris_alaeque_nasi_R": 0.35}
+    truth_jaw = (6.0, 1.0, 1.0)
+    neutral = scan_of(np.asarray(rig.rest))
+    a = rig.activations(truth_acts)
+    x = np.asarray(synthesize(rig, a, JawPose(*truth_jaw)))
+    expr = scan_of(x)
+    build_s = time.perf_counter() - t0
+    subject = subject_from_rig(rig, neutral, face_mask=face_mask, options=SubjectOptions())
+    opt = FitOptions(**opt_kw)
+    t = time.perf_counter()
+    (res,) = fit_expressions(subject, [expr], options=opt)
+    fit_s = time.perf_counter() - t
+    names = list(subject.muscle_names)
+    pri = make_priors(names, opt)
+    cond = jacobian_conditioning(res.fit.y, res.fit.points, pri, names)
+    true_vec = np.asarray(a)
+    err = {n: float(res.activations[n] - true_vec[i]) for i, n in enumerate(names)}
+    vif = cond["vif"]
+    distinguishable = [n for n in names if vif[n] < 10.0 and cond["sensitivity"][n] > 1e-2]
+    fm = subject.face_mask
+    surf = np.linalg.norm(np.asarray(res.fitted.vertices)[fm] - x[fm], axis=1)
+    return {
+        "face": which, "build_s": build_s, "subject_s": subject.timings, "fit_s": fit_s,
+        "true_activations": truth_acts, "true_jaw": truth_jaw,
+        "scan_to_fit_mean": res.metrics.scan_to_fit["all"].mean,
+        "skin_vertex_error_mm": {"mean": float(surf.mean()), "median": float(np.median(surf)),
+                                 "p95": float(np.percentile(surf, 95))},
+        "jaw_fit": res.jaw, "jaw_error": [res.jaw["pitch_deg"] - truth_jaw[0], res.jaw["yaw_deg"] - truth_jaw[1],
+                                          res.jaw["protrusion_mm"] - truth_jaw[2]],
+        "activation_error": err,
+        "max_activation_error_distinguishable": max((abs(err[n]) for n in distinguishable), default=None),
+        "max_activation_error_all": max(abs(v) for v in err.values()),
+        "distinguishable": distinguishable,
+        "status": res.status, "steps": res.fit.steps,
+        "conditioning": cond,
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--subjects", default="bs900,bs901")
+    ap.add_argument("--no-round-trip", action="store_true")
+    ap.add_argument("--round-trip-ict", action="store_true", help="also run the round trip on the ICT face")
+    ap.add_argument("--no-single", action="store_true", help="skip the single-scan timings")
+    ap.add_argument("--exact-steps", type=int, default=0, help="final LM steps through the exact rig")
+    args = ap.parse_args()
+    warnings.simplefilter("ignore")
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from jaxface.fit.evaluation import evaluate_against_truth, load_truth
+    from jaxface.fit.solve import FitOptions
+
+    truth = load_truth()
+    opt = FitOptions(exact_steps=args.exact_steps)
+    report = {"machine": _machine(), "options": {k: (list(v) if isinstance(v, tuple) else v)
+                                                 for k, v in opt.__dict__.items()}, "subjects": []}
+    for sid in [s for s in args.subjects.split(",") if s]:
+        print(f"== subject {sid}", flush=True)
+        r = bench_subject(truth, sid, opt, single=not args.no_single)
+        report["subjects"].append(r)
+        print(f"build {r['build']['wall_s']:.1f} s (register {r['build']['register_s']:.1f}, rig "
+              f"{r['build']['rig_s']:.1f}, compile {r['build']['compile_s']:.1f}, reduced model "
+              f"{r['build']['response_s']:.1f})")
+        for k, v in r["timing"].items():
+            print(f"  time {k}: " + ", ".join(f"{a}={b:.2f}" if isinstance(b, float) else f"{a}={b}" for a, b in v.items()))
+        print(f"{'scan':22s} {'fit':>6s} {'B0':>6s} {'B1':>6s} {'B0/fit':>6s} {'scan':>5s}  status        "
+              f"{'pitch':>5s}  AU ranks / top AUs")
+        for s in r["scans"]:
+            print(f"{s['stem']:22s} {s['fit_mean']:6.3f} {s['B0_mean']:6.3f} {s['B1_mean']:6.3f} "
+                  f"{(s['ratio_B0_over_fit'] or 0):6.2f} {s['scan_to_fit_mean']:5.2f}  {s['status'][:13]:13s} "
+                  f"{s['jaw']['pitch_deg']:5.1f}  {s['au_ranks']} {[(k, round(v, 2)) for k, v in s['top_aus'][:4]]}"
+                  + (f" 12L/12R {s['au12_sides']['AU12L']:.2f}/{s['au12_sides']['AU12R']:.2f}"
+                     if s["code"] == "LFAU_12L" else ""))
+        ex = [s for s in r["scans"] if s["code"] != "N_N"]
+        print(f"  mean over expressions: fit {np.mean([s['fit_mean'] for s in ex]):.3f}  B0 "
+              f"{np.mean([s['B0_mean'] for s in ex]):.3f}  B1 {np.mean([s['B1_mean'] for s in ex]):.3f}", flush=True)
+    allex = [s for r in report["subjects"] for s in r["scans"] if s["code"] != "N_N"]
+    if allex:
+        report["summary"] = {
+            "mean_fit": float(np.mean([s["fit_mean"] for s in allex])),
+            "mean_B0": float(np.mean([s["B0_mean"] for s in allex])),
+            "mean_B1": float(np.mean([s["B1_mean"] for s in allex])),
+            "n_fit_le_1mm": int(sum(s["fit_mean"] <= 1.0 for s in allex)),
+            "n_2x_better_than_B0": int(sum((s["ratio_B0_over_fit"] or 0) >= 2.0 for s in allex)),
+            "n_expressions": len(allex),
+            "neutral_registration_mm": {s["stem"]: s["B0_mean"] for r in report["subjects"] for s in r["scans"]
+                                        if s["code"] == "N_N"},
+        }
+        print("summary:", json.dumps(report["summary"]))
+    if not args.no_round_trip:
+        faces = ["default_head"] + (["ict"] if args.round_trip_ict else [])
+        report["round_trip"] = []
+        for face in faces:
+            print(f"== round trip on {face}", flush=True)
+            rt = round_trip(face, dict(exact_steps=args.exact_steps))
+            report["round_trip"].append(rt)
+            print(f"scan->fit {rt['scan_to_fit_mean']:.4f} mm, skin error median {rt['skin_vertex_error_mm']['median']:.4f} "
+                  f"mm, jaw error {np.round(rt['jaw_error'], 3).tolist()}, max activation error (distinguishable) "
+                  f"{rt['max_activation_error_distinguishable']}, all {rt['max_activation_error_all']:.3f}, status "
+                  f"{rt['status']}, fit {rt['fit_s']:.1f} s")
+            c = rt["conditioning"]
+            for g in ("activations", "jaw", "rigid", "all"):
+                sv = np.asarray(c["singular_values"][g])
+                print(f"  singular values {g}: max {sv[0]:.3g} min {sv[-1]:.3g} cond {c['condition'][g]:.3g}")
+            worst = sorted(c["vif"].items(), key=lambda kv: -kv[1])[:8]
+            print("  least distinguishable (VIF):", [(k, round(v, 1)) for k, v in worst])
+    out = Path(__file__).resolve().parent / "results"
+    out.mkdir(parents=True, exist_ok=True)
+    from jaxface.fit.pipeline import _jsonable
+
+    (out / "bench_fit.json").write_text(json.dumps(_jsonable(report), indent=1))
+    print(f"wrote {out / 'bench_fit.json'}")
+
+
+if __name__ == "__main__":
+    main()

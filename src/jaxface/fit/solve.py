@@ -1,0 +1,1327 @@
+"""Inverse fit: muscle activations, jaw pose and a small rigid correction from a scan (issue 7).
+
+Units and frame: millimetres, degrees for angles; +y up; the face looks along +z; the
+subject's left is +x. The fit works in the frame of the subject's *neutral scan* (where the
+rig lives: the registered neutral is the rig's rest state); :mod:`jaxface.fit.pipeline` moves
+expression scans into that frame first and the result back out.
+
+Unknowns (one pytree ``y``, all smooth, no bounds needed):
+
+* ``y["z"]`` ``(M,)``: activations ``a = sin^2(pi z / 2)`` in [0, 1], ordered as
+  ``rig.muscle_names`` (:func:`activations_from_z`; smooth, bounded, and the bounds are
+  reached at finite ``z``);
+* ``y["jaw"]`` ``(3,)``: ``[pitch_deg, yaw_deg, protrusion_mm]`` of a
+  :class:`~jaxface.anatomy.jaw.JawPose`; the rig's :class:`~jaxface.anatomy.jaw.JawModel`
+  clamps them smoothly into its limits, and so does every model here;
+* ``y["rigid"]`` ``(6,)`` (optional): ``[rotation vector (deg), translation (mm)]`` of a
+  rigid correction ``x -> c + R (x - c) + t`` about the face centre ``c`` (the expression
+  scan's alignment to the neutral is never exact where the expression moves the whole face).
+
+Forward models (same call signature ``(a (M,), jaw (3,)) -> (N, 3) mm``):
+
+* :class:`ForwardModel`: the rig itself (PBD :func:`jaxface.anatomy.synthesize`, or the LTW
+  backend), jit-compiled once with the rig closed over; the *exact* quasi-static model.
+* :class:`ResponseModel`: a reduced model of the same rig built from a few hundred
+  syntheses (:func:`build_response_model`): per muscle, the displacement field at activation
+  knots ``0, 1/L, ..., 1`` (jaw closed) interpolated by a cubic Hermite spline in the
+  activation; for the jaw, the displacement field at pitch knots over the whole range with
+  first and second derivatives in yaw and protrusion at each knot, interpolated in pitch; the
+  contributions add. It costs microseconds instead of 50-300 ms per evaluation, and its
+  forward-mode Jacobian costs milliseconds instead of 10-40 s (measured on the 2-core CPU:
+  the rig's Jacobian by ``jax.jacfwd`` took 16-40 s per evaluation on the default head).
+
+Residuals (:func:`residuals`), for ``K`` scan points and ``L`` landmarks:
+
+* point-to-plane: ``sqrt(w_k) n_k . (S_k(y) - q_k)`` where ``q_k`` is a scan point, ``S_k`` the
+  simulated skin point it corresponds to (a triangle id and barycentrics on the rig skin,
+  fixed during an inner solve) and ``n_k`` the skin normal there; ``w_k`` are robust
+  (Tukey) weights normalised to sum to 1, so the term is a weighted mean in mm^2;
+* landmarks: ``sqrt(lambda_lm / L) (S_l(y) - q_l)`` with ``S_l`` the landmark's surface
+  point on the rig skin;
+* priors: sparsity ``sqrt(lambda_s) sin(pi z_i / 2)`` (its square is ``lambda_s a_i``: an L1
+  penalty on the non-negative activations),
+  left/right symmetry ``sqrt(lambda_sym) (a_L - a_R)``, and small ridges on the rigid
+  correction and on jaw yaw/protrusion.
+
+Solver (:func:`fit_points`): an outer loop refreshes correspondences (exact closest points of
+the scan points on the current simulated skin, :class:`jaxface.fit.metrics.SurfaceIndex`,
+NumPy) and robust weights; each inner solve is optimistix Levenberg-Marquardt (forward-mode
+Jacobian, ``throw=False``) on the reduced model plus a *defect* ``d = x_exact(y_k) -
+x_reduced(y_k)``, the exact rig's disagreement with the reduced model at the current iterate
+(defect correction: at the fixed point the residuals are those of the exact rig, so the
+reduced model only has to supply good derivatives). Every outer iteration therefore costs
+one exact synthesis. The reduced model's forward-mode derivative has a custom rule
+(:func:`hermite_sum`): a Jacobian costs about one evaluation plus a small matrix product.
+
+Bounds: ``a = sin^2(pi z / 2)`` has zero slope at both bounds, where Gauss-Newton steps
+degenerate, so the bounds are handled as an *active set* (:func:`update_active_set`): after
+each inner solve, an activation within 0.01 of a bound whose cost gradient pushes it outward
+is held at the bound (its Jacobian column vanishes), and a held one whose gradient points
+back inside is released; the inner solve is repeated (same correspondences) while the set
+changes. At the end the KKT conditions of the box hold.
+
+Jaw start: by default at the pitch whose reduced-model landmarks best match the scan's
+landmarks; ``FitOptions.jaw_starts`` gives an explicit multi-start instead (all starts in
+one vmapped batch, the best final cost wins). Optionally (``FitOptions.exact_steps``) a final
+Levenberg-Marquardt solve runs through the exact rig's own forward-mode Jacobian. Batches of
+scans are solved together with ``jax.vmap`` (padded, zero-weight residuals).
+
+Status is reported honestly (:class:`PointFit.status`): ``"successful"`` only when the last
+inner solve met optimistix's tolerance and the active set is stable; otherwise the optimistix
+``RESULTS`` name (e.g. ``"nonlinear_max_steps_reached"``) or ``"active_set_changing"``. Every
+inner solve is recorded (:class:`InnerReport`); non-finite parameters raise
+:class:`jaxface.errors.FitError`.
+"""
+
+from __future__ import annotations
+
+import functools
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from ..errors import FitError
+from .metrics import SurfaceIndex
+
+__all__ = [
+    "FitOptions",
+    "ForwardModel",
+    "ResponseModel",
+    "build_response_model",
+    "hermite_sum",
+    "activations_from_z",
+    "z_from_activations",
+    "rotation_from_rotvec_deg",
+    "apply_rigid",
+    "PointSet",
+    "Priors",
+    "make_priors",
+    "residuals",
+    "solve_inner",
+    "Correspondences",
+    "find_correspondences",
+    "InnerReport",
+    "update_active_set",
+    "effective_z",
+    "PointFit",
+    "fit_points",
+    "jacobian_conditioning",
+    "result_name",
+]
+
+
+# --------------------------------------------------------------------------------------
+# options
+# --------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class FitOptions:
+    """Settings of the inverse fit (lengths in mm, angles in degrees).
+
+    Attributes:
+        n_points: scan points per fit (fixed, padded; evenly subsampled).
+        outer_iterations: correspondence refreshes (each costs one exact synthesis).
+        max_steps: Levenberg-Marquardt steps per inner solve.
+        rtol, atol: optimistix convergence tolerances of the inner solves.
+        init_activation: the activations' starting value (``a(z0)``).
+        jaw_starts: starting jaw pitches (deg) of a multi-start: every start runs the
+            whole fit (in the same vmapped batch, so nothing is compiled twice) and the one
+            with the lowest final robust point-to-plane cost on the exact skin wins.
+            ``None`` (default): one start per scan, at the pitch whose reduced-model
+            landmarks (activations 0) best match the scan's landmark targets, searched on a
+            1-degree grid over the pitch limits. (On the shared data, starts at 0 and 8
+            degrees reached the same minimum on every scan, at twice the cost.)
+        rigid: fit the 6-dof rigid correction.
+        landmark_weight: ``lambda_lm``: weight of the mean squared landmark error relative
+            to the mean squared point-to-plane error.
+        sparsity_weight: ``lambda_s`` (mm^2 per unit activation).
+        symmetry_weight: ``lambda_sym`` (mm^2 per unit activation^2).
+        rigid_weight: ridge on the rigid correction (mm^2 per deg^2 and per mm^2).
+        jaw_weight: ridge on jaw yaw (deg) and protrusion (mm) (mm^2 per unit^2).
+        max_distance_mm: rejection distance of the correspondences, annealed from the first
+            to the second value over the outer iterations.
+        robust_floor_mm: lower bound of the Tukey cut-off, annealed likewise.
+        max_normal_angle_deg: reject correspondences whose scan and skin normals differ more.
+        exact_steps: Levenberg-Marquardt steps through the exact rig at the end (0 = none;
+            each step costs a forward-mode Jacobian of the rig: seconds to tens of seconds).
+        release_gradient: dead band of the active set (mm^2 per unit activation): an
+            activation is held at a bound when the cost gradient pushes it outward by more
+            than this, and released when it points inside by more than this.
+        active_set_rounds: inner re-solves per outer iteration while the set of activations
+            held at a bound changes (same correspondences).
+        controls: fit only these controls (names); the others are held at 0. Default all.
+        seed: subsampling seed.
+    """
+
+    n_points: int = 1000
+    outer_iterations: int = 4
+    max_steps: int = 25
+    rtol: float = 1e-3
+    atol: float = 1e-4
+    init_activation: float = 0.05
+    jaw_starts: tuple[float, ...] | None = None
+    rigid: bool = True
+    landmark_weight: float = 0.1
+    sparsity_weight: float = 2e-4
+    symmetry_weight: float = 1e-3
+    rigid_weight: float = 1e-4
+    jaw_weight: float = 1e-4
+    max_distance_mm: tuple[float, float] = (10.0, 4.0)
+    robust_floor_mm: tuple[float, float] = (6.0, 1.5)
+    max_normal_angle_deg: float = 60.0
+    exact_steps: int = 0
+    release_gradient: float = 5e-5
+    active_set_rounds: int = 3
+    controls: tuple[str, ...] | None = None
+    seed: int = 0
+
+    def anneal(self, pair: tuple[float, float], k: int) -> float:
+        """Value of an annealed ``(first, last)`` setting at outer iteration ``k``
+        (geometric interpolation)."""
+        n = max(self.outer_iterations - 1, 1)
+        s = min(max(k / n, 0.0), 1.0)
+        a, b = float(pair[0]), float(pair[1])
+        return float(a * (b / a) ** s) if a > 0 and b > 0 else a + (b - a) * s
+
+
+# --------------------------------------------------------------------------------------
+# parameterisation
+# --------------------------------------------------------------------------------------
+def activations_from_z(z):
+    """Activations ``(M,)`` in [0, 1] from the unconstrained parameters:
+    ``a = sin^2(pi z / 2)``.
+
+    Why not a sigmoid: the bounds are reached at *finite* parameters (``z = 0`` and
+    ``z = 1``, where ``da/dz = 0``), so a muscle that the data would drive past 0 or 1
+    settles there instead of running away to infinity (a sigmoid's ``z`` keeps growing with
+    steps of O(1) and the solver never meets its tolerance); and ``sqrt(lambda) sin(pi z /
+    2)`` is a smooth residual whose square is the L1 sparsity prior ``lambda a``."""
+    return jnp.sin(0.5 * jnp.pi * z) ** 2
+
+
+def z_from_activations(a, eps: float = 0.0):
+    """Inverse of :func:`activations_from_z` on ``z`` in [0, 1] (activations clipped to
+    ``[eps, 1 - eps]``)."""
+    a = jnp.clip(jnp.asarray(a), eps, 1.0 - eps)
+    return (2.0 / jnp.pi) * jnp.arcsin(jnp.sqrt(a))
+
+
+def rotation_from_rotvec_deg(w_deg):
+    """Rotation matrix ``(3, 3)`` of a rotation vector ``(3,)`` in degrees (Rodrigues;
+    NaN-safe at 0 in value and gradient: a Taylor series below 1e-6 rad)."""
+    w = jnp.asarray(w_deg) * (jnp.pi / 180.0)
+    th2 = jnp.sum(w * w)
+    small = th2 < 1e-12
+    th2s = jnp.where(small, 1.0, th2)
+    th = jnp.sqrt(th2s)
+    A = jnp.where(small, 1.0 - th2 / 6.0, jnp.sin(th) / th)
+    B = jnp.where(small, 0.5 - th2 / 24.0, (1.0 - jnp.cos(th)) / th2s)
+    z = jnp.zeros((), w.dtype)
+    K = jnp.array([[z, -w[2], w[1]], [w[2], z, -w[0]], [-w[1], w[0], z]])
+    return jnp.eye(3, dtype=w.dtype) + A * K + B * (K @ K)
+
+
+def apply_rigid(rigid, centre, x):
+    """``c + R (x - c) + t`` for ``rigid = [rotvec_deg (3), t_mm (3)]``, ``x`` ``(N, 3)`` mm."""
+    R = rotation_from_rotvec_deg(rigid[:3])
+    return centre + (x - centre) @ R.T + rigid[3:]
+
+
+def rigid_numpy(rigid, centre) -> tuple[np.ndarray, np.ndarray]:
+    """``(R (3, 3), t (3,))`` with ``x -> R x + t`` equal to :func:`apply_rigid` (NumPy)."""
+    R = np.asarray(rotation_from_rotvec_deg(jnp.asarray(np.asarray(rigid, np.float64)[:3])))
+    c = np.asarray(centre, np.float64)
+    return R, c - R @ c + np.asarray(rigid, np.float64)[3:]
+
+
+# --------------------------------------------------------------------------------------
+# the exact forward model
+# --------------------------------------------------------------------------------------
+def _synth_fn(rig) -> Callable:
+    """``(a (M,), jaw (3,)) -> (V, 3)`` for a PBD :class:`~jaxface.anatomy.rig.Rig` or an
+    LTW rig."""
+    from ..anatomy.jaw import JawPose
+
+    try:
+        from ..ltw.rig import LTWRig, synthesize_ltw
+    except ImportError:  # pragma: no cover - the LTW backend is optional
+        LTWRig, synthesize_ltw = (), None
+    if LTWRig and isinstance(rig, LTWRig):
+        return lambda a, j: synthesize_ltw(rig, a, JawPose.from_array(j))
+    from ..anatomy.rig import synthesize
+
+    return lambda a, j: synthesize(rig, a, JawPose.from_array(j))
+
+
+class ForwardModel:
+    """The rig's quasi-static synthesis, jit-compiled once with the rig closed over.
+
+    Arguments:
+        rig: a :class:`jaxface.anatomy.rig.Rig` (or an LTW rig), mm.
+        chunk: batch size of :meth:`many` (batches are padded to it, so it compiles once).
+
+    Calling ``model(a (M,), jaw (3,))`` returns the ``(V, 3)`` skin in mm (NumPy).
+    :meth:`many` evaluates a batch sequentially inside one compiled call (``lax.map``: on the
+    CPU a ``vmap`` of the PBD solve was 4x slower per item than a loop).
+    """
+
+    def __init__(self, rig, *, chunk: int = 8):
+        self.rig = rig
+        self.n_controls = int(rig.n_controls)
+        self.muscle_names = tuple(rig.muscle_names)
+        self.chunk = int(chunk)
+        fn = _synth_fn(rig)
+        self._fn = fn
+        self._one = jax.jit(fn)
+        self._many = jax.jit(lambda A, J: jax.lax.map(lambda aj: fn(aj[0], aj[1]), (A, J)))
+        self.calls = 0
+
+    @property
+    def triangles(self) -> np.ndarray:
+        return np.asarray(self.rig.triangles)
+
+    @property
+    def rest(self) -> np.ndarray:
+        return np.asarray(self.rig.rest)
+
+    def __call__(self, a, jaw) -> np.ndarray:
+        self.calls += 1
+        dt = jnp.result_type(float)  # float64 when x64 is enabled, else float32
+        return np.asarray(self._one(jnp.asarray(a, dt), jnp.asarray(jaw, dt)))
+
+    def many(self, A, J) -> np.ndarray:
+        """``(B, V, 3)`` mm for activations ``(B, M)`` and jaw poses ``(B, 3)``."""
+        A = np.asarray(A, np.float64).reshape(-1, self.n_controls)
+        J = np.asarray(J, np.float64).reshape(-1, 3)
+        out = []
+        for s in range(0, len(A), self.chunk):
+            a, j = A[s : s + self.chunk], J[s : s + self.chunk]
+            n = len(a)
+            if n < self.chunk:
+                a = np.concatenate([a, np.repeat(a[-1:], self.chunk - n, 0)])
+                j = np.concatenate([j, np.repeat(j[-1:], self.chunk - n, 0)])
+            dt = jnp.result_type(float)
+            out.append(np.asarray(self._many(jnp.asarray(a, dt), jnp.asarray(j, dt)))[:n])
+            self.calls += n
+        return np.concatenate(out) if out else np.zeros((0, len(self.rest), 3))
+
+
+# --------------------------------------------------------------------------------------
+# the reduced (response) model
+# --------------------------------------------------------------------------------------
+def _hermite_parts(x, knots, values, slopes):
+    """Value ``(K, 3)`` of ``sum_m H_m(x_m)`` and the derivative fields ``dH_m/dx_m``
+    ``(M, K, 3)`` (see :func:`hermite_sum`)."""
+    t = knots
+    n = t.shape[0]
+    xc = jnp.clip(x, t[0], t[-1])
+    s = jnp.clip(jnp.searchsorted(t, xc, side="right") - 1, 0, n - 2)  # (M,)
+    h = t[s + 1] - t[s]
+    u = (xc - t[s]) / h
+    u2, u3 = u * u, u * u * u
+    below = (x < t[0]).astype(x.dtype)
+    above = (x > t[-1]).astype(x.dtype)
+    inside = 1.0 - below - above
+    e = x - xc  # linear continuation beyond the ends
+    w = jnp.stack([2 * u3 - 3 * u2 + 1, -2 * u3 + 3 * u2, (u3 - 2 * u2 + u) * h + e * below,
+                   (u3 - u2) * h + e * above], axis=1)
+    dw = jnp.stack([(6 * u2 - 6 * u) / h * inside, (-6 * u2 + 6 * u) / h * inside,
+                    (3 * u2 - 4 * u + 1) * inside + below, (3 * u2 - 2 * u) * inside + above], axis=1)
+    idx = s[:, None, None, None]
+    Y0 = jnp.take_along_axis(values, idx, axis=1)[:, 0]
+    Y1 = jnp.take_along_axis(values, idx + 1, axis=1)[:, 0]
+    m0 = jnp.take_along_axis(slopes, idx, axis=1)[:, 0]
+    m1 = jnp.take_along_axis(slopes, idx + 1, axis=1)[:, 0]
+    val = (jnp.einsum("m,mkd->kd", w[:, 0], Y0) + jnp.einsum("m,mkd->kd", w[:, 1], Y1)
+           + jnp.einsum("m,mkd->kd", w[:, 2], m0) + jnp.einsum("m,mkd->kd", w[:, 3], m1))
+    D = (dw[:, 0, None, None] * Y0 + dw[:, 1, None, None] * Y1 + dw[:, 2, None, None] * m0
+         + dw[:, 3, None, None] * m1)
+    return val, D
+
+
+@jax.custom_jvp
+def hermite_sum(x, knots, values, slopes):
+    """``sum_m H_m(x_m)``: cubic Hermite splines, one per row, summed.
+
+    Arguments:
+        x: ``(M,)`` abscissae (one per spline).
+        knots: ``(N,)`` increasing knots shared by the splines.
+        values, slopes: ``(M, N, K, 3)`` values and slopes at the knots.
+
+    Returns:
+        ``(K, 3)``. Beyond the knot range each spline continues linearly with its end slope.
+
+    The forward-mode derivative has a custom rule: with respect to ``x`` it is
+    ``sum_m dx_m dH_m/dx_m``, whose fields are computed once per evaluation, so a
+    ``jax.jacfwd`` over ``T`` tangents costs one evaluation plus a ``(T, M) x (M, 3K)``
+    product instead of ``T`` evaluations (the fitter's Jacobian). Tangents of the tables
+    fall back to plain autodiff.
+    """
+    return _hermite_parts(x, knots, values, slopes)[0]
+
+
+def _hermite_sum_jvp(primals, tangents):
+    from jax.custom_derivatives import SymbolicZero
+
+    x, knots, values, slopes = primals
+    dx, dk, dv, ds = tangents
+    zero = lambda t: isinstance(t, SymbolicZero)  # noqa: E731
+    if not (zero(dk) and zero(dv) and zero(ds)):
+        inst = [jnp.zeros_like(p) if zero(t) else t for p, t in zip(primals, tangents)]
+        return jax.jvp(lambda *a: _hermite_parts(*a)[0], primals, tuple(inst))
+    val, D = _hermite_parts(x, knots, values, slopes)
+    if zero(dx):
+        return val, jnp.zeros_like(val)
+    return val, jnp.einsum("m,mkd->kd", dx, D)
+
+
+hermite_sum.defjvp(_hermite_sum_jvp, symbolic_zeros=True)
+
+
+def _hermite_slopes(knots: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Three-point slopes of ``values`` ``(N, ...)`` at non-uniform ``knots`` ``(N,)``."""
+    t = np.asarray(knots, np.float64)
+    y = np.asarray(values, np.float64)
+    n = len(t)
+    m = np.zeros_like(y)
+    h = np.diff(t)
+    d = np.diff(y, axis=0) / h.reshape((-1,) + (1,) * (y.ndim - 1))
+    if n == 2:
+        m[:] = d[0]
+        return m
+    for k in range(1, n - 1):
+        a, b = h[k - 1], h[k]
+        m[k] = (b * d[k - 1] + a * d[k]) / (a + b)
+    m[0] = 2 * d[0] - m[1]
+    m[-1] = 2 * d[-1] - m[-2]
+    return m
+
+
+class ResponseModel(eqx.Module):
+    """Reduced model of a rig over ``P`` points (vertices, or surface points after
+    :meth:`gather`), mm.
+
+    ``x(a, jaw) = rest + J(jaw) + sum_i H_i(a_i)`` with ``H_i`` the Hermite interpolant of
+    muscle ``i``'s displacement at the activation knots (jaw closed) and
+    ``J = X(p) + y Dy(p) + y^2/2 Dyy(p) + q Dq(p) + q^2/2 Dqq(p)`` for the clamped pitch
+    ``p`` (deg), yaw ``y`` (deg) and protrusion ``q`` (mm), each field interpolated in ``p``.
+
+    Attributes:
+        rest: ``(P, 3)`` mm.
+        levels: ``(NL,)`` activation knots (``levels[0] = 0``).
+        mus, mus_slope: ``(M, NL, P, 3)`` displacements (mm) and their activation slopes.
+        pitch: ``(NJ,)`` pitch knots (deg, effective = after the jaw's smooth clamp).
+        jaw_tab, jaw_slope: ``(NJ, 5, P, 3)`` fields ``[X, Dy, Dyy, Dq, Dqq]`` (mm, mm/deg,
+            mm/deg^2, mm/mm, mm/mm^2) and their pitch slopes.
+        jaw: the rig's :class:`~jaxface.anatomy.jaw.JawModel` (for the smooth clamp).
+        sampled: static ``(M,)`` bools: controls whose tables were sampled (the others are
+            zero and must stay at activation 0).
+    """
+
+    rest: jax.Array
+    levels: jax.Array
+    mus: jax.Array
+    mus_slope: jax.Array
+    pitch: jax.Array
+    jaw_tab: jax.Array
+    jaw_slope: jax.Array
+    jaw: Any
+    sampled: tuple = eqx.field(static=True, default=())
+
+    @property
+    def n_points(self) -> int:
+        return int(self.rest.shape[0])
+
+    def clamp_jaw(self, jaw):
+        """Effective ``(3,)`` jaw pose after the rig's smooth limits."""
+        from ..anatomy.jaw import JawPose
+
+        p = self.jaw.clamp(JawPose.from_array(jaw))
+        return jnp.stack([p.pitch_deg, p.yaw_deg, p.protrusion_mm])
+
+    def displacement(self, a, jaw):
+        """``(P, 3)`` displacement from rest, mm, for ``a`` ``(M,)`` in [0, 1] and ``jaw``
+        ``(3,)`` (forward-mode derivatives through :func:`hermite_sum`'s custom rule)."""
+        d = hermite_sum(a, self.levels, self.mus, self.mus_slope)
+        j = self.clamp_jaw(jaw)
+        nj, nf, P = self.jaw_tab.shape[:3]
+        F = hermite_sum(j[:1], self.pitch, self.jaw_tab.reshape(1, nj, nf * P, 3),
+                        self.jaw_slope.reshape(1, nj, nf * P, 3)).reshape(nf, P, 3)
+        y, q = j[1], j[2]
+        return d + F[0] + y * F[1] + (0.5 * y * y) * F[2] + q * F[3] + (0.5 * q * q) * F[4]
+
+    def __call__(self, a, jaw):
+        """``(P, 3)`` positions, mm."""
+        return self.rest + self.displacement(a, jaw)
+
+    def gather(self, ids, bary) -> "ResponseModel":
+        """The model at surface points: ``ids`` ``(K, 3)`` local point ids of triangle
+        corners, ``bary`` ``(K, 3)`` barycentrics. Returns a :class:`ResponseModel` over
+        the ``K`` points."""
+        ids = jnp.asarray(ids)
+        b = jnp.asarray(bary, self.rest.dtype)
+
+        def g(arr, axis):
+            taken = jnp.take(arr, ids, axis=axis)  # (..., K, 3, 3)
+            return jnp.einsum("...kcd,kc->...kd", taken, b)
+
+        return ResponseModel(
+            rest=g(self.rest, 0),
+            levels=self.levels,
+            mus=g(self.mus, 2),
+            mus_slope=g(self.mus_slope, 2),
+            pitch=self.pitch,
+            jaw_tab=g(self.jaw_tab, 2),
+            jaw_slope=g(self.jaw_slope, 2),
+            jaw=self.jaw,
+            sampled=self.sampled,
+        )
+
+
+_gather_jit = eqx.filter_jit(lambda m, ids, bary: m.gather(ids, bary))
+_eval_jit = eqx.filter_jit(lambda m, a, j: m(a, j))
+
+
+def build_response_model(
+    forward: ForwardModel,
+    point_ids=None,
+    *,
+    levels: int = 4,
+    pitch_knots: int = 12,
+    yaw_step_deg: float = 2.5,
+    protrusion_step_mm: float = 2.0,
+    controls: Sequence[str] | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> ResponseModel:
+    """Sample the rig and build its :class:`ResponseModel` over ``point_ids`` (vertex ids,
+    default all vertices).
+
+    Syntheses: ``M * levels`` (each muscle alone at ``1/levels, ..., 1``, jaw closed) plus
+    ``5 * pitch_knots`` (pitch knots over the jaw's limits; at each, yaw ``+-h`` and
+    protrusion ``h, 2h``).
+
+    Arguments:
+        forward: the :class:`ForwardModel` of the rig.
+        point_ids: ``(P,)`` vertex ids to keep (default all).
+        levels: activation knots above 0.
+        pitch_knots: number of pitch knots (over the jaw's pitch limits).
+        yaw_step_deg, protrusion_step_mm: finite-difference steps.
+        controls: only sample these controls (names; default all); the others get zero
+            tables and must stay at 0 (:attr:`ResponseModel.sampled`, ``FitOptions.controls``).
+        progress: called as ``progress(done, total)`` after each batch of syntheses.
+
+    Raises:
+        FitError: a synthesis produced NaN/inf.
+    """
+    from ..anatomy.jaw import smooth_clamp
+
+    rig = forward.rig
+    M = forward.n_controls
+    rest_all = forward.rest
+    ids = np.arange(len(rest_all)) if point_ids is None else np.asarray(point_ids, np.int64)
+    lv = np.linspace(0.0, 1.0, int(levels) + 1)
+    jm = rig.jaw
+    plo, phi = jm.pitch_limits
+    raw_p = np.linspace(plo - 1.0, phi + 1.0, int(pitch_knots))  # clamped: just inside the limits
+    eff_p = np.asarray(smooth_clamp(jnp.asarray(raw_p), plo, phi, jm.softness_deg))
+    hy, hq = float(yaw_step_deg), float(protrusion_step_mm)
+    names = list(forward.muscle_names)
+    if controls is None:
+        sampled = list(range(M))
+    else:
+        unknown = [c for c in controls if c not in names]
+        if unknown:
+            raise FitError(f"unknown controls {unknown}; the rig's controls are {names}.")
+        sampled = sorted(names.index(c) for c in controls)
+    A, J = [], []
+    for i in sampled:
+        for v in lv[1:]:
+            a = np.zeros(M)
+            a[i] = v
+            A.append(a)
+            J.append(np.zeros(3))
+    jaw_offsets = [(0.0, 0.0), (hy, 0.0), (-hy, 0.0), (0.0, hq), (0.0, 2 * hq)]
+    for p in raw_p:
+        for y, q in jaw_offsets:
+            A.append(np.zeros(M))
+            J.append(np.array([p, y, q]))
+    A = np.stack(A)
+    J = np.stack(J)
+    total = len(A)
+    out = np.zeros((total, len(ids), 3))
+    step = max(forward.chunk, 1)
+    for s in range(0, total, step):
+        x = forward.many(A[s : s + step], J[s : s + step])
+        out[s : s + len(x)] = x[:, ids]
+        if progress is not None:
+            progress(min(s + step, total), total)
+    if not np.all(np.isfinite(out)):
+        bad = np.flatnonzero(~np.isfinite(out).all(axis=(1, 2)))
+        raise FitError(f"the rig produced NaN/inf in {bad.size} of {total} syntheses (first rows "
+                       f"{bad[:5].tolist()}); the reduced model cannot be built.")
+    rest = rest_all[ids]
+    nl = len(lv)
+    mus = np.zeros((M, nl, len(ids), 3))
+    ns = len(sampled)
+    mus[sampled, 1:] = out[: ns * levels].reshape(ns, levels, len(ids), 3) - rest
+    mus_slope = np.stack([_hermite_slopes(lv, mus[i]) for i in range(M)])
+    jt = out[ns * levels :].reshape(len(raw_p), len(jaw_offsets), len(ids), 3)
+    f0, fyp, fym, fq1, fq2 = (jt[:, k] for k in range(5))
+    tab = np.stack(
+        [
+            f0 - rest,
+            (fyp - fym) / (2 * hy),
+            (fyp - 2 * f0 + fym) / hy**2,
+            (-3 * f0 + 4 * fq1 - fq2) / (2 * hq),
+            (f0 - 2 * fq1 + fq2) / hq**2,
+        ],
+        axis=1,
+    )
+    tab_slope = _hermite_slopes(eff_p, tab)
+    return ResponseModel(
+        rest=jnp.asarray(rest),
+        levels=jnp.asarray(lv),
+        mus=jnp.asarray(mus),
+        mus_slope=jnp.asarray(mus_slope),
+        pitch=jnp.asarray(eff_p),
+        jaw_tab=jnp.asarray(tab),
+        jaw_slope=jnp.asarray(tab_slope),
+        jaw=jm,
+        sampled=tuple(bool(i in set(sampled)) for i in range(M)),
+    )
+
+
+# --------------------------------------------------------------------------------------
+# the inner least-squares problem
+# --------------------------------------------------------------------------------------
+class PointSet(eqx.Module):
+    """The data of one inner solve (one scan, fixed correspondences), mm.
+
+    Attributes:
+        model: :class:`ResponseModel` gathered at the ``K + L`` surface points (scan
+            correspondences first, then landmarks).
+        defect: ``(K + L, 3)`` exact-minus-reduced model at those points (mm).
+        target: ``(K + L, 3)`` scan points, then landmark targets (mm).
+        normal: ``(K, 3)`` unit skin normals at the correspondences.
+        w_point: ``(K,)`` weights (sum 1; 0 for padding / rejected).
+        w_landmark: ``(L,)`` weights (``lambda_lm / L``; 0 for missing landmarks).
+        centre: ``(3,)`` centre of the rigid correction (mm).
+        ids, bary: ``(K + L, 3)`` local fit-vertex ids and barycentrics of the points (for
+            evaluating the exact rig at them).
+        free: ``(M,)`` 1 for a free activation, 0 for one held at a bound (active set).
+        z_fixed: ``(M,)`` the parameter of a held activation (0 -> a = 0, 1 -> a = 1).
+    """
+
+    model: ResponseModel
+    defect: jax.Array
+    target: jax.Array
+    normal: jax.Array
+    w_point: jax.Array
+    w_landmark: jax.Array
+    centre: jax.Array
+    ids: jax.Array
+    bary: jax.Array
+    free: jax.Array
+    z_fixed: jax.Array
+
+
+class Priors(eqx.Module):
+    """Prior terms (shared by every scan of a batch).
+
+    Attributes:
+        left, right: ``(S,)`` indices of the paired ``_L`` / ``_R`` controls.
+        sparsity, symmetry, rigid, jaw: weights (mm^2 per unit, see :class:`FitOptions`).
+        use_rigid: static, whether ``y`` has a ``"rigid"`` entry.
+    """
+
+    left: jax.Array
+    right: jax.Array
+    sparsity: jax.Array
+    symmetry: jax.Array
+    rigid: jax.Array
+    jaw: jax.Array
+    use_rigid: bool = eqx.field(static=True, default=True)
+
+
+def make_priors(muscle_names: Sequence[str], options: FitOptions) -> Priors:
+    """:class:`Priors` for a rig's control names (``name_L`` pairs with ``name_R``)."""
+    names = list(muscle_names)
+    left, right = [], []
+    for i, n in enumerate(names):
+        if n.endswith("_L") and n[:-2] + "_R" in names:
+            left.append(i)
+            right.append(names.index(n[:-2] + "_R"))
+    f = lambda v: jnp.asarray(float(v))  # noqa: E731
+    return Priors(
+        left=jnp.asarray(np.array(left, np.int64)),
+        right=jnp.asarray(np.array(right, np.int64)),
+        sparsity=f(options.sparsity_weight),
+        symmetry=f(options.symmetry_weight),
+        rigid=f(options.rigid_weight),
+        jaw=f(options.jaw_weight),
+        use_rigid=bool(options.rigid),
+    )
+
+
+def effective_z(y, pts: PointSet):
+    """``(M,)`` activation parameters with the held ones replaced by their bound."""
+    return jnp.where(pts.free > 0, y["z"], pts.z_fixed)
+
+
+def _data_residuals(a, jaw, rigid, pts: PointSet, use_rigid: bool):
+    x = pts.model(a, jaw) + pts.defect
+    if use_rigid:
+        x = apply_rigid(rigid, pts.centre, x)
+    K = pts.normal.shape[0]
+    r_pt = jnp.sqrt(pts.w_point) * jnp.sum(pts.normal * (x[:K] - pts.target[:K]), axis=-1)
+    r_lm = jnp.sqrt(pts.w_landmark)[:, None] * (x[K:] - pts.target[K:])
+    return r_pt, r_lm
+
+
+def model_points(y, pts: PointSet, use_rigid: bool):
+    """``(K + L, 3)`` simulated points (mm, neutral-scan frame) for parameters ``y``."""
+    a = activations_from_z(effective_z(y, pts))
+    x = pts.model(a, y["jaw"]) + pts.defect
+    if use_rigid:
+        x = apply_rigid(y["rigid"], pts.centre, x)
+    return x
+
+
+def residuals(y, args):
+    """Residual pytree of the inner problem (see the module doc); ``args = (PointSet,
+    Priors)``. All terms in mm (or sqrt(mm^2) for the priors)."""
+    pts, pri = args
+    z = effective_z(y, pts)
+    a = activations_from_z(z)
+    r_pt, r_lm = _data_residuals(a, y["jaw"], y.get("rigid"), pts, pri.use_rigid)
+    r_sp = jnp.sqrt(pri.sparsity) * jnp.sin(0.5 * jnp.pi * z)  # r^2 = lambda a
+    r_sym = jnp.sqrt(pri.symmetry) * (a[pri.left] - a[pri.right])
+    r_jaw = jnp.sqrt(pri.jaw) * y["jaw"][1:]
+    out = {"points": r_pt, "landmarks": r_lm, "sparsity": r_sp, "symmetry": r_sym, "jaw": r_jaw}
+    if pri.use_rigid:
+        out["rigid"] = jnp.sqrt(pri.rigid) * y["rigid"]
+    return out
+
+
+def _cost(y, args):
+    r = residuals(y, args)
+    return sum(jnp.sum(v * v) for v in jax.tree_util.tree_leaves(r))
+
+
+def _cost_of_activations(a, y, pts: PointSet, pri: Priors):
+    """The inner cost as a function of the activations themselves (mm^2); its gradient
+    is the KKT test of the bounds."""
+    r_pt, r_lm = _data_residuals(a, y["jaw"], y.get("rigid"), pts, pri.use_rigid)
+    c = jnp.sum(r_pt**2) + jnp.sum(r_lm**2)
+    c = c + pri.sparsity * jnp.sum(a) + pri.symmetry * jnp.sum((a[pri.left] - a[pri.right]) ** 2)
+    return c
+
+
+def _solve_one(y0, pts, pri, *, max_steps, rtol, atol):
+    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+    sol = optx.least_squares(residuals, solver, y0, args=(pts, pri), max_steps=max_steps, throw=False)
+    y = sol.value
+    a = activations_from_z(effective_z(y, pts))
+    g = jax.grad(_cost_of_activations)(a, y, pts, pri)
+    return y, sol.result._value, sol.stats["num_steps"], _cost(y, (pts, pri)), _cost(y0, (pts, pri)), a, g
+
+
+@functools.lru_cache(maxsize=16)
+def _batched_solver(max_steps: int, rtol: float, atol: float):
+    fn = functools.partial(_solve_one, max_steps=max_steps, rtol=rtol, atol=atol)
+    return eqx.filter_jit(jax.vmap(fn, in_axes=(0, 0, None)))
+
+
+def solve_inner(y0, points: PointSet, priors: Priors, options: FitOptions):
+    """Batched Levenberg-Marquardt solves (``jax.vmap`` over the leading axis of ``y0`` and
+    ``points``), ``throw=False``.
+
+    Returns:
+        ``(y, result (B,) int, steps (B,), cost (B,), cost0 (B,), a (B, M), grad_a (B, M))``;
+        ``result`` indexes ``optimistix.RESULTS`` (0 = successful, see
+        :func:`result_name`); ``grad_a`` is the gradient of the cost with respect to the
+        activations at the solution (mm^2 per unit activation).
+    """
+    fn = _batched_solver(int(options.max_steps), float(options.rtol), float(options.atol))
+    y, res, steps, cost, cost0, a, g = fn(y0, points, priors)
+    return (y, np.asarray(res), np.asarray(steps), np.asarray(cost), np.asarray(cost0), np.asarray(a),
+            np.asarray(g))
+
+
+def result_name(code: int) -> str:
+    """Name of an ``optimistix.RESULTS`` code (``"successful"``, ``"max_steps_reached"``,
+    ``"nonlinear_max_steps_reached"``, ...)."""
+    for name, item in optx.RESULTS._name_to_item.items():
+        if int(item._value) == int(code):
+            return name
+    return f"unknown({int(code)})"
+
+
+def update_active_set(a, grad, free, z_fixed, *, tol_a: float = 1e-2, tol_g: float = 1e-4,
+                      locked=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """Active-set update of the activation bounds (NumPy, one scan).
+
+    A free activation within ``tol_a`` of a bound whose cost gradient pushes it outward by
+    more than ``tol_g`` (``grad > tol_g`` at 0, ``grad < -tol_g`` at 1; mm^2 per unit
+    activation) is held at that bound; a held one whose gradient points back inside by more
+    than ``tol_g`` is released, restarting 0.02 inside. The dead band ``|grad| <= tol_g``
+    keeps an activation whose optimum lies just inside a bound from flipping back and forth.
+    ``locked`` ``(M,)`` bools stay held at 0 (controls the fit leaves out).
+
+    Returns:
+        ``(free, z_fixed, z_start, changes)``: new mask, bound parameters, a starting ``z``
+        for the released ones (NaN elsewhere) and the number of changes.
+    """
+    a = np.asarray(a, np.float64)
+    g = np.asarray(grad, np.float64)
+    free = np.asarray(free, np.float64).copy()
+    zf = np.asarray(z_fixed, np.float64).copy()
+    z_start = np.full(len(a), np.nan)
+    lock = np.zeros(len(a), bool) if locked is None else np.asarray(locked, bool)
+    changes = 0
+    for i in range(len(a)):
+        if lock[i]:
+            free[i], zf[i] = 0.0, 0.0
+            continue
+        if free[i] > 0:
+            if a[i] <= tol_a and g[i] > tol_g:
+                free[i], zf[i] = 0.0, 0.0
+                changes += 1
+            elif a[i] >= 1.0 - tol_a and g[i] < -tol_g:
+                free[i], zf[i] = 0.0, 1.0
+                changes += 1
+        else:
+            if zf[i] == 0.0 and g[i] < -tol_g:
+                free[i] = 1.0
+                z_start[i] = float(z_from_activations(0.02))
+                changes += 1
+            elif zf[i] == 1.0 and g[i] > tol_g:
+                free[i] = 1.0
+                z_start[i] = float(z_from_activations(0.98))
+                changes += 1
+    return free, zf, z_start, changes
+
+
+# --------------------------------------------------------------------------------------
+# correspondences (NumPy)
+# --------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Correspondences:
+    """Scan points matched to the simulated skin (one outer iteration), padded to ``K``.
+
+    Attributes:
+        tri: ``(K,)`` skin triangle ids; bary: ``(K, 3)``; local: ``(K, 3)`` local point ids
+            of the triangle corners (into the fit-vertex set).
+        target: ``(K, 3)`` scan points (mm); normal: ``(K, 3)`` skin normals.
+        weight: ``(K,)`` robust weights summing to 1 (0 = rejected or padding).
+        distance: ``(K,)`` point-to-plane residual at the current skin (mm, signed).
+        n_accepted: accepted matches; scale_mm: the Tukey cut-off used.
+    """
+
+    tri: np.ndarray
+    bary: np.ndarray
+    local: np.ndarray
+    target: np.ndarray
+    normal: np.ndarray
+    weight: np.ndarray
+    distance: np.ndarray
+    n_accepted: int
+    scale_mm: float
+
+
+def find_correspondences(
+    skin,
+    triangles: np.ndarray,
+    face_triangles: np.ndarray,
+    local_ids: np.ndarray,
+    points: np.ndarray,
+    point_normals: np.ndarray | None,
+    valid: np.ndarray,
+    *,
+    max_distance: float,
+    robust_floor: float,
+    max_normal_angle_deg: float = 60.0,
+) -> Correspondences:
+    """Closest points of scan ``points`` ``(K, 3)`` on the simulated ``skin`` ``(V, 3)``
+    (face triangles only), with rejection and Tukey weights.
+
+    A match is rejected when the point is padding (``valid`` False), its closest point lies
+    on the border of the face region (the scan point is outside the face), it is farther
+    than ``max_distance`` mm, or the scan normal differs from the skin normal by more than
+    ``max_normal_angle_deg``. Weights: Tukey's biweight at
+    ``max(4.685 * 1.4826 * MAD, robust_floor)`` of the point-to-plane residuals, normalised
+    to sum to 1.
+
+    Raises:
+        FitError: no match accepted.
+    """
+    index = SurfaceIndex(skin, triangles, face_triangles)
+    cp = index.query(points, max_distance=max_distance * 2.0)
+    tri = cp.triangles
+    bary = cp.bary
+    nrm = cp.normals
+    d_signed = np.einsum("kd,kd->k", cp.points - points, nrm)  # n . (S - q)
+    ok = np.asarray(valid, bool) & ~cp.on_boundary & (cp.distances <= max_distance)
+    if point_normals is not None:
+        cos_max = np.cos(np.radians(max_normal_angle_deg))
+        ok &= np.einsum("kd,kd->k", point_normals, nrm) >= cos_max
+    if not ok.any():
+        raise FitError(
+            "no scan point found a compatible point on the simulated skin (all farther than "
+            f"{max_distance:.1f} mm, outside the face region or with opposed normals); the scan "
+            "and the subject's neutral do not overlap (check the landmarks and the alignment)."
+        )
+    r = np.abs(d_signed[ok])
+    mad = float(np.median(np.abs(r - np.median(r))))
+    c = max(4.685 * 1.4826 * mad, float(robust_floor))
+    u = np.abs(d_signed) / c
+    w = np.where(ok & (u < 1.0), (1.0 - u * u) ** 2, 0.0)
+    if w.sum() <= 0:
+        w = ok.astype(np.float64)
+    w = w / w.sum()
+    loc = local_ids[triangles[tri]]
+    if np.any(loc[ok] < 0):  # pragma: no cover - face triangles are always in the fit set
+        raise FitError("internal: a face triangle corner is missing from the fit-vertex set.")
+    loc = np.where(loc < 0, 0, loc)
+    return Correspondences(
+        tri=tri,
+        bary=bary,
+        local=loc,
+        target=np.asarray(points, np.float64),
+        normal=nrm,
+        weight=w,
+        distance=d_signed,
+        n_accepted=int(ok.sum()),
+        scale_mm=c,
+    )
+
+
+# --------------------------------------------------------------------------------------
+# the outer loop
+# --------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class InnerReport:
+    """One inner solve of one scan: outer iteration, optimistix result name, LM steps,
+    cost before/after (mm^2), accepted correspondences, Tukey cut-off (mm), active-set
+    changes after the solve, activations held at a bound, seconds (of the whole batched
+    call)."""
+
+    outer: int
+    result: str
+    steps: int
+    cost0: float
+    cost: float
+    n_accepted: int
+    scale_mm: float
+    active_set_changes: int
+    n_at_bounds: int
+    seconds: float
+
+    def to_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+@dataclass
+class PointFit:
+    """Result of :func:`fit_points` for one scan (neutral-scan frame, mm).
+
+    Attributes:
+        activations: ``(M,)`` in [0, 1]; jaw: ``(3,)`` [pitch_deg, yaw_deg, protrusion_mm]
+            as fitted (the rig clamps it smoothly; ``jaw_effective`` is the clamped pose).
+        rigid: ``(6,)`` [rotation vector deg, translation mm] about ``centre`` ``(3,)``.
+        skin: ``(V, 3)`` the exact rig's skin at the fit with the rigid correction, mm.
+        y: the parameter pytree; reports: the inner solves.
+        status: ``"successful"`` when the last inner solve met its tolerance and the active
+            set of the activation bounds did not change (KKT conditions hold), else the
+            optimistix result name of the last solve or ``"active_set_changing"``.
+        steps: total LM steps; seconds: wall time per scan; start_pitch: the winning start.
+        residual_mm: point-to-plane residual stats of the final correspondences (exact skin).
+        points: the last :class:`PointSet` (for conditioning).
+        starts: jaw start pitch (deg) -> final weighted cost (mm^2) of every start.
+        at_bounds: control index -> bound (0 or 1) of the activations held there.
+    """
+
+    activations: np.ndarray
+    jaw: np.ndarray
+    jaw_effective: np.ndarray
+    rigid: np.ndarray
+    centre: np.ndarray
+    skin: np.ndarray
+    y: dict
+    reports: list[InnerReport]
+    status: str
+    steps: int
+    seconds: float
+    start_pitch: float
+    residual_mm: dict = field(default_factory=dict)
+    points: Any = None
+    starts: dict = field(default_factory=dict)
+    at_bounds: dict = field(default_factory=dict)
+
+
+def _stack(trees):
+    return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *trees)
+
+
+def _index(tree, i):
+    return jax.tree_util.tree_map(lambda x: x[i], tree)
+
+
+def _y0(M: int, options: FitOptions, pitch: float):
+    # NumPy first: strongly typed float64 leaves (a weakly typed leaf would re-trace the
+    # compiled solver on the next call)
+    y = {
+        "z": jnp.asarray(np.full(M, float(z_from_activations(options.init_activation)))),
+        "jaw": jnp.asarray(np.array([float(pitch), 0.0, 0.0])),
+    }
+    if options.rigid:
+        y["rigid"] = jnp.asarray(np.zeros(6))
+    return y
+
+
+def _landmark_pitch(response: ResponseModel, lm_loc, lm_bary, scan: dict) -> float:
+    """Jaw pitch (deg, 1-degree grid over the limits) whose reduced-model landmarks at
+    activations 0 best match the scan's landmark targets (least squares)."""
+    valid = np.asarray(scan["landmark_valid"], bool)
+    if valid.sum() < 3:
+        return 0.0
+    gm = _gather_jit(response, jnp.asarray(lm_loc), jnp.asarray(lm_bary))
+    lo, hi = response.jaw.pitch_limits
+    grid = np.arange(np.ceil(lo), np.floor(hi) + 1.0, 1.0)
+    M = response.mus.shape[0]
+    X = np.asarray(_pitch_sweep(gm, jnp.asarray(grid), M))  # (G, L, 3)
+    tgt = np.asarray(scan["landmarks"], np.float64)
+    err = np.sum(((X - tgt[None]) ** 2).sum(-1)[:, valid], axis=1)
+    return float(grid[int(np.argmin(err))])
+
+
+@eqx.filter_jit
+def _pitch_sweep(model: ResponseModel, pitches, M: int):
+    z = jnp.zeros(M, pitches.dtype)
+    return jax.vmap(lambda p: model(z, jnp.stack([p, 0.0 * p, 0.0 * p])))(pitches)
+
+
+def fit_points(
+    forward: ForwardModel,
+    response: ResponseModel,
+    fit_ids: np.ndarray,
+    face_triangles: np.ndarray,
+    scans: Sequence[dict],
+    landmark_tri: np.ndarray,
+    landmark_bary: np.ndarray,
+    options: FitOptions | None = None,
+    *,
+    progress: Callable[[str], None] | None = None,
+) -> list[PointFit]:
+    """Fit activations, jaw and rigid correction to a batch of scans of one subject.
+
+    Arguments:
+        forward: the exact rig (:class:`ForwardModel`).
+        response: its :class:`ResponseModel` over the vertices ``fit_ids``.
+        fit_ids: ``(P,)`` vertex ids of the response model (every vertex of the face
+            triangles and of the landmark triangles).
+        face_triangles: ``(F,)`` bool, the rig skin's face region.
+        scans: one dict per scan (neutral-scan frame, mm): ``points`` ``(K, 3)`` (exactly
+            ``options.n_points`` rows), ``normals`` ``(K, 3)`` or None, ``valid`` ``(K,)``
+            bool, ``landmarks`` ``(L, 3)`` targets and ``landmark_valid`` ``(L,)`` bool.
+        landmark_tri, landmark_bary: ``(L,)`` / ``(L, 3)`` the landmarks on the rig skin.
+        options: :class:`FitOptions`.
+        progress: called with a short text after each outer iteration.
+
+    Returns:
+        one :class:`PointFit` per scan.
+
+    Raises:
+        FitError: non-finite parameters after a solve, no correspondence, or unknown
+            controls in ``options.controls``.
+    """
+    opt = options or FitOptions()
+    t0 = time.perf_counter()
+    tris = forward.triangles
+    V = len(forward.rest)
+    M = forward.n_controls
+    names = list(forward.muscle_names)
+    local = np.full(V, -1, np.int64)
+    local[np.asarray(fit_ids)] = np.arange(len(fit_ids))
+    lm_loc = local[tris[np.asarray(landmark_tri)]]
+    if np.any(lm_loc < 0):
+        raise FitError("internal: a landmark triangle corner is missing from the fit-vertex set.")
+    locked = np.zeros(M, bool)
+    if response.sampled:
+        locked |= ~np.asarray(response.sampled, bool)
+    if opt.controls is not None:
+        unknown = [c for c in opt.controls if c not in names]
+        if unknown:
+            raise FitError(f"FitOptions.controls names unknown controls {unknown}; the rig has {names}.")
+        locked |= ~np.isin(names, list(opt.controls))
+    for c in opt.controls or ():
+        if locked[names.index(c)]:
+            raise FitError(f"control {c!r} is to be fitted but the reduced model did not sample it "
+                           "(build_response_model(controls=...)).")
+    centre = np.asarray(response.rest).mean(axis=0)
+    priors = make_priors(names, opt)
+    S = len(scans)
+    # runs: (scan index, start pitch), all solved together in one vmapped batch
+    if opt.jaw_starts is None:
+        runs = [(s, _landmark_pitch(response, lm_loc, landmark_bary, sc)) for s, sc in enumerate(scans)]
+    else:
+        runs = [(s, float(p)) for s in range(S) for p in (list(opt.jaw_starts) or [0.0])]
+    R_ = len(runs)
+    ys = [_y0(M, opt, p) for _, p in runs]
+    free = [np.where(locked, 0.0, 1.0) for _ in runs]
+    zfix = [np.zeros(M) for _ in runs]
+    for i in range(R_):
+        z = np.asarray(ys[i]["z"]).copy()
+        z[locked] = 0.0
+        ys[i]["z"] = jnp.asarray(z)
+    reports: dict[int, list[InnerReport]] = {i: [] for i in range(R_)}
+    last_pts: dict[int, PointSet] = {}
+    last_changes = [0] * R_
+
+    def exact_skins(ys_, free_, zfix_):
+        A, J = [], []
+        for y, f, zf in zip(ys_, free_, zfix_):
+            z = np.where(f > 0, np.asarray(y["z"]), zf)
+            A.append(np.asarray(activations_from_z(jnp.asarray(z))))
+            J.append(np.asarray(y["jaw"]))
+        X = forward.many(np.stack(A), np.stack(J))
+        out = []
+        for y, x in zip(ys_, X):
+            if opt.rigid:
+                R, t = rigid_numpy(np.asarray(y["rigid"]), centre)
+                x = x @ R.T + t
+            out.append(x)
+        return X, out, A
+
+    def corr_for(run, skin, k):
+        sc = scans[runs[run][0]]
+        return find_correspondences(
+            skin, tris, face_triangles, local, sc["points"], sc.get("normals"), sc["valid"],
+            max_distance=opt.anneal(opt.max_distance_mm, k), robust_floor=opt.anneal(opt.robust_floor_mm, k),
+            max_normal_angle_deg=opt.max_normal_angle_deg,
+        )
+
+    outer = max(int(opt.outer_iterations), 1)
+    for k in range(outer):
+        t_it = time.perf_counter()
+        Xr, skins, A = exact_skins(ys, free, zfix)
+        pts_list, corrs = [], []
+        for i, (s, _) in enumerate(runs):
+            c = corr_for(i, skins[i], k)
+            corrs.append(c)
+            approx = np.asarray(_eval_jit(response, jnp.asarray(A[i]), ys[i]["jaw"]))
+            defect_v = Xr[i][fit_ids] - approx  # (P, 3): exact minus reduced model
+            ids = np.concatenate([c.local, lm_loc])
+            bary = np.concatenate([c.bary, np.asarray(landmark_bary)])
+            gm = _gather_jit(response, jnp.asarray(ids), jnp.asarray(bary))
+            dfx = np.einsum("kc,kcd->kd", bary, defect_v[ids])
+            sc = scans[s]
+            lw = np.where(np.asarray(sc["landmark_valid"], bool), 1.0, 0.0)
+            lw = opt.landmark_weight * lw / max(lw.sum(), 1.0)
+            target = np.concatenate([c.target, np.asarray(sc["landmarks"], np.float64)])
+            target = np.where(np.isfinite(target), target, 0.0)
+            pts_list.append(
+                PointSet(
+                    model=gm, defect=jnp.asarray(dfx), target=jnp.asarray(target), normal=jnp.asarray(c.normal),
+                    w_point=jnp.asarray(c.weight), w_landmark=jnp.asarray(lw), centre=jnp.asarray(centre),
+                    ids=jnp.asarray(ids), bary=jnp.asarray(bary), free=jnp.asarray(free[i]),
+                    z_fixed=jnp.asarray(zfix[i]),
+                )
+            )
+        P = _stack(pts_list)
+        Y0 = _stack(ys)
+        tot_steps = np.zeros(R_, np.int64)
+        cost0_first = None
+        changes = np.zeros(R_, np.int64)
+        for rnd in range(max(int(opt.active_set_rounds), 1)):
+            # same correspondences; re-solve while the active set of the bounds changes
+            Y, res, steps, cost, cost0, acts, grads = solve_inner(Y0, P, priors, opt)
+            cost0_first = cost0 if cost0_first is None else cost0_first
+            tot_steps += steps
+            flat = np.concatenate([np.asarray(v).reshape(R_, -1) for v in jax.tree_util.tree_leaves(Y)], axis=1)
+            for i in range(R_):
+                if not np.all(np.isfinite(flat[i])):
+                    raise FitError(
+                        f"the inner solve of scan {runs[i][0]} returned non-finite parameters at outer "
+                        f"iteration {k} (optimistix result: {result_name(res[i])})."
+                    )
+            new_ys = []
+            for i in range(R_):
+                yi = dict(_index(Y, i))
+                f_new, zf_new, z_start, n_ch = update_active_set(acts[i], grads[i], free[i], zfix[i], locked=locked,
+                                                                 tol_g=opt.release_gradient)
+                z = np.asarray(yi["z"]).copy()
+                z = np.where(np.isfinite(z_start), z_start, z)
+                z = np.where(f_new > 0, z, zf_new)
+                yi["z"] = jnp.asarray(z)
+                new_ys.append(yi)
+                free[i], zfix[i] = f_new, zf_new
+                changes[i] = n_ch
+            ys = new_ys
+            if not changes.any():
+                break
+            P = eqx.tree_at(lambda p: (p.free, p.z_fixed), P,
+                            (jnp.asarray(np.stack(free)), jnp.asarray(np.stack(zfix))))
+            Y0 = _stack(ys)
+        dt = time.perf_counter() - t_it
+        for i in range(R_):
+            last_changes[i] = int(changes[i])
+            reports[i].append(InnerReport(k, result_name(res[i]), int(tot_steps[i]), float(cost0_first[i]),
+                                          float(cost[i]), corrs[i].n_accepted, corrs[i].scale_mm, int(changes[i]),
+                                          int(np.sum((free[i] == 0) & ~locked)), dt))
+            last_pts[i] = _index(P, i)
+        if progress is not None:
+            progress(f"outer iteration {k + 1}/{outer}: cost {np.mean(cost):.4f} mm^2, steps {int(np.max(steps))}")
+
+    if opt.exact_steps > 0:
+        ys = [
+            _exact_refine(forward, fit_ids, ys[i], last_pts[i], priors, opt, reports[i], outer)
+            for i in range(R_)
+        ]
+    Xr, skins, A = exact_skins(ys, free, zfix)
+    total = time.perf_counter() - t0
+    finals = []
+    for i in range(R_):
+        c = corr_for(i, skins[i], outer - 1)
+        finals.append((c, float(np.sum(c.weight * c.distance**2))))
+    results = []
+    for s_ in range(S):
+        cand = [i for i, (ss, _) in enumerate(runs) if ss == s_]
+        i = cand[int(np.argmin([finals[j][1] for j in cand]))]
+        y = dict(ys[i])
+        y["z"] = jnp.where(jnp.asarray(free[i]) > 0, y["z"], jnp.asarray(zfix[i]))
+        c = finals[i][0]
+        ok = c.weight > 0
+        d = np.abs(c.distance[ok])
+        last = reports[i][-1]
+        status = last.result
+        if status == "successful" and last_changes[i] > 0:
+            status = "active_set_changing"
+        results.append(
+            PointFit(
+                activations=np.asarray(A[i]),
+                jaw=np.asarray(y["jaw"]),
+                jaw_effective=np.asarray(response.clamp_jaw(y["jaw"])),
+                rigid=np.asarray(y["rigid"]) if opt.rigid else np.zeros(6),
+                centre=centre,
+                skin=skins[i],
+                y=jax.tree_util.tree_map(np.asarray, y),
+                reports=reports[i],
+                status=status,
+                steps=int(sum(r.steps for r in reports[i])),
+                seconds=total / max(S, 1),
+                start_pitch=float(runs[i][1]),
+                residual_mm={"mean": float(d.mean()), "median": float(np.median(d)),
+                             "rms": float(np.sqrt(np.mean(d * d))), "n": int(ok.sum()),
+                             "weighted_cost_mm2": finals[i][1]},
+                points=last_pts[i],
+                starts={float(runs[j][1]): finals[j][1] for j in cand},
+                at_bounds={int(m): float(zfix[i][m]) for m in range(M) if free[i][m] == 0 and not locked[m]},
+            )
+        )
+    return results
+
+
+# --------------------------------------------------------------------------------------
+# exact refinement through the rig
+# --------------------------------------------------------------------------------------
+def _points_from_vertices(xv, pts: PointSet):
+    """``(K + L, 3)`` surface points (mm) of fit-vertex positions ``xv`` ``(P, 3)``."""
+    return jnp.einsum("kc,kcd->kd", pts.bary, xv[pts.ids])
+
+
+def _exact_refine(forward, fit_ids, y, pts: PointSet, priors: Priors, opt: FitOptions, reports, outer):
+    """Levenberg-Marquardt through the exact rig (forward-mode Jacobian of the PBD solve)
+    with the last correspondences and active set."""
+    t0 = time.perf_counter()
+    fn = forward._fn
+    fit_ids_j = jnp.asarray(fit_ids)
+
+    def resid(yy, args):
+        pts_, pri = args
+        a = activations_from_z(effective_z(yy, pts_))
+        x = _points_from_vertices(fn(a, yy["jaw"])[fit_ids_j], pts_)
+        if pri.use_rigid:
+            x = apply_rigid(yy["rigid"], pts_.centre, x)
+        K = pts_.normal.shape[0]
+        out = residuals(yy, args)
+        out["points"] = jnp.sqrt(pts_.w_point) * jnp.sum(pts_.normal * (x[:K] - pts_.target[:K]), axis=-1)
+        out["landmarks"] = jnp.sqrt(pts_.w_landmark)[:, None] * (x[K:] - pts_.target[K:])
+        return out
+
+    cost = jax.jit(lambda yy, args: sum(jnp.sum(v * v) for v in jax.tree_util.tree_leaves(resid(yy, args))))
+    solver = optx.LevenbergMarquardt(rtol=opt.rtol, atol=opt.atol)
+    c0 = float(cost(y, (pts, priors)))
+    sol = jax.jit(
+        lambda y0, args: optx.least_squares(resid, solver, y0, args=args, max_steps=int(opt.exact_steps), throw=False)
+    )(y, (pts, priors))
+    yv = sol.value
+    c1 = float(cost(yv, (pts, priors)))
+    reports.append(InnerReport(outer, "exact:" + result_name(int(sol.result._value)), int(sol.stats["num_steps"]),
+                               c0, c1, int(np.sum(np.asarray(pts.w_point) > 0)), float("nan"), 0,
+                               int(np.sum(np.asarray(pts.free) == 0)), time.perf_counter() - t0))
+    return yv
+
+
+# --------------------------------------------------------------------------------------
+# conditioning
+# --------------------------------------------------------------------------------------
+def jacobian_conditioning(y, points: PointSet, priors: Priors, muscle_names: Sequence[str]) -> dict:
+    """Conditioning of the fit's data Jacobian at ``y`` (forward mode, reduced model +
+    defect, i.e. the exact rig's residuals to first order).
+
+    The Jacobian is that of the point-to-plane and landmark residuals with respect to the
+    *physical* parameters: activations (taken directly, so controls held at a bound get
+    their column too), jaw pitch/yaw (deg) and protrusion (mm), rigid rotation (deg) and
+    translation (mm).
+
+    Returns:
+        dict with ``singular_values`` per group (``"activations"``, ``"jaw"``, ``"rigid"``,
+        ``"all"``), ``condition`` per group, ``parameters`` (column names), and per parameter:
+        ``sensitivity`` (column norm: mm of weighted residual per unit) and ``vif`` (variance
+        inflation factor ``(J^T J)^-1_ii (J^T J)_ii``: 1 = independent of the others; large
+        = hard to tell apart from a combination of the others).
+    """
+    z = jnp.asarray(y["z"])
+    a0 = activations_from_z(jnp.where(points.free > 0, z, points.z_fixed))
+
+    def phys(p):
+        M = a0.shape[0]
+        rig = p[M + 3 :] if priors.use_rigid else None
+        r_pt, r_lm = _data_residuals(p[:M], p[M : M + 3], rig, points, priors.use_rigid)
+        return jnp.concatenate([r_pt.ravel(), r_lm.ravel()])
+
+    p0 = [a0, jnp.asarray(y["jaw"])]
+    if priors.use_rigid:
+        p0.append(jnp.asarray(y["rigid"]))
+    p0 = jnp.concatenate(p0)
+    Jm = np.asarray(jax.jit(jax.jacfwd(phys))(p0))
+    M = int(a0.shape[0])
+    groups = {"activations": np.arange(M), "jaw": np.arange(M, M + 3)}
+    if priors.use_rigid:
+        groups["rigid"] = np.arange(M + 3, M + 9)
+    groups["all"] = np.arange(Jm.shape[1])
+    out: dict[str, Any] = {"singular_values": {}, "condition": {}}
+    for g, cols in groups.items():
+        s = np.linalg.svd(Jm[:, cols], compute_uv=False)
+        out["singular_values"][g] = s.tolist()
+        out["condition"][g] = float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
+    JtJ = Jm.T @ Jm
+    sens = np.sqrt(np.diag(JtJ))
+    try:
+        inv = np.linalg.pinv(JtJ, rcond=1e-14)
+        vif = np.diag(inv) * np.diag(JtJ)
+    except np.linalg.LinAlgError:  # pragma: no cover
+        vif = np.full(len(sens), np.inf)
+    names = list(muscle_names) + ["jaw_pitch_deg", "jaw_yaw_deg", "jaw_protrusion_mm"]
+    if priors.use_rigid:
+        names += ["rot_x_deg", "rot_y_deg", "rot_z_deg", "t_x_mm", "t_y_mm", "t_z_mm"]
+    out["parameters"] = names
+    out["sensitivity"] = dict(zip(names, sens.tolist()))
+    out["vif"] = dict(zip(names, vif.tolist()))
+    return out

@@ -1,0 +1,232 @@
+"""The inverse fit (jaxface.fit.solve / pipeline): the reduced model's splines and their custom
+derivative rule, the bounded activation map, the rigid correction, correspondences, the
+active set of the activation bounds, and a synthetic round trip on the default head (rig ->
+virtual scan -> fit back), in a reduced setting (six controls and the jaw)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from jaxface.errors import FitError
+from jaxface.fit.solve import (
+    FitOptions,
+    _hermite_parts,
+    _hermite_slopes,
+    activations_from_z,
+    find_correspondences,
+    hermite_sum,
+    rotation_from_rotvec_deg,
+    update_active_set,
+    z_from_activations,
+)
+
+
+# ------------------------------------------------------------------------------ splines
+def _quadratic_tables(knots, M=3, K=5, seed=0):
+    rng = np.random.default_rng(seed)
+    c = rng.normal(size=(M, 3, K, 3))  # per spline: c0 + c1 x + c2 x^2
+    f = lambda x: c[:, 0] + c[:, 1] * x + c[:, 2] * x * x  # noqa: E731
+    vals = np.stack([f(t) for t in knots], axis=1)  # (M, N, K, 3)
+    slopes = np.stack([_hermite_slopes(knots, vals[m]) for m in range(M)])
+    return c, vals, slopes
+
+
+def test_hermite_sum_reproduces_quadratics_between_nonuniform_knots():
+    knots = np.array([0.0, 0.15, 0.5, 0.6, 1.0])
+    c, vals, slopes = _quadratic_tables(knots)
+    x = np.array([0.07, 0.55, 0.93])
+    got = np.asarray(hermite_sum(jnp.asarray(x), jnp.asarray(knots), jnp.asarray(vals), jnp.asarray(slopes)))
+    want = sum(c[m, 0] + c[m, 1] * x[m] + c[m, 2] * x[m] ** 2 for m in range(3))
+    np.testing.assert_allclose(got, want, atol=1e-12)
+
+
+def test_hermite_sum_custom_derivative_matches_finite_differences():
+    knots = np.linspace(0.0, 1.0, 5)
+    rng = np.random.default_rng(1)
+    vals = jnp.asarray(rng.normal(size=(4, 5, 6, 3)))
+    slopes = jnp.asarray(rng.normal(size=(4, 5, 6, 3)))
+    kn = jnp.asarray(knots)
+    f = lambda x: hermite_sum(x, kn, vals, slopes)  # noqa: E731
+    # interior points off the knots, and points beyond the ends (linear continuation)
+    for x in (np.array([0.1, 0.33, 0.6, 0.9]), np.array([-0.3, 1.2, 0.45, 0.05])):
+        x = jnp.asarray(x)
+        J = jax.jacfwd(f)(x)  # (6, 3, 4) through the custom rule
+        h = 1e-6
+        fd = np.stack([(f(x.at[i].add(h)) - f(x.at[i].add(-h))) / (2 * h) for i in range(4)], axis=-1)
+        np.testing.assert_allclose(np.asarray(J), fd, atol=1e-7)
+    # tangents of the tables fall back to plain autodiff (linear in the tables)
+    x = jnp.asarray([0.2, 0.4, 0.7, 0.95])
+    dv = jnp.asarray(rng.normal(size=vals.shape))
+    _, t = jax.jvp(lambda v: hermite_sum(x, kn, v, slopes), (vals,), (dv,))
+    np.testing.assert_allclose(np.asarray(t), np.asarray(_hermite_parts(x, kn, dv, slopes * 0)[0]), atol=1e-12)
+
+
+# ------------------------------------------------------------------------------ parameters
+def test_activation_map_is_bounded_smooth_and_invertible():
+    z = jnp.linspace(-3.0, 4.0, 701)
+    a = np.asarray(activations_from_z(z))
+    assert a.min() >= 0.0 and a.max() <= 1.0
+    # bounds are reached at finite parameters, with zero slope (no run-away at a bound)
+    g = jax.vmap(jax.grad(activations_from_z))
+    np.testing.assert_allclose(np.asarray(g(jnp.asarray([0.0, 1.0]))), 0.0, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(activations_from_z(jnp.asarray([0.0, 1.0]))), [0.0, 1.0], atol=1e-15)
+    aa = jnp.asarray([0.0, 0.02, 0.5, 0.97, 1.0])
+    np.testing.assert_allclose(np.asarray(activations_from_z(z_from_activations(aa))), aa, atol=1e-12)
+
+
+def test_rotation_vector_matches_scipy_and_has_finite_gradient_at_zero():
+    w = np.array([3.0, -2.0, 5.0])
+    np.testing.assert_allclose(np.asarray(rotation_from_rotvec_deg(jnp.asarray(w))),
+                               Rotation.from_rotvec(np.radians(w)).as_matrix(), atol=1e-12)
+
+    def f(v):
+        return jnp.sum(rotation_from_rotvec_deg(v) @ jnp.asarray([1.0, 2.0, 3.0]))
+
+    g0 = np.asarray(jax.grad(f)(jnp.zeros(3)))
+    assert np.all(np.isfinite(g0))
+    h = 1e-5
+    fd = np.array([(f(jnp.eye(3)[i] * h) - f(-jnp.eye(3)[i] * h)) / (2 * h) for i in range(3)])
+    np.testing.assert_allclose(g0, fd, atol=1e-8)
+
+
+# ------------------------------------------------------------------------------ correspondences
+def _plane(n=21, spacing=1.0):
+    xs = np.arange(n) * spacing - (n - 1) * spacing / 2
+    X, Y = np.meshgrid(xs, xs)
+    v = np.stack([X.ravel(), Y.ravel(), np.zeros(X.size)], 1)
+    ids = np.arange(n * n).reshape(n, n)
+    a, b, c, d = ids[:-1, :-1].ravel(), ids[:-1, 1:].ravel(), ids[1:, 1:].ravel(), ids[1:, :-1].ravel()
+    t = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+    return v, t
+
+
+def test_correspondences_on_a_plane_signed_distance_rejection_and_weights():
+    v, t = _plane()
+    # face region: the central 10 x 10 mm (triangles whose vertices all lie inside)
+    inside = (np.abs(v[:, 0]) <= 5) & (np.abs(v[:, 1]) <= 5)
+    face_tri = inside[t].all(axis=1)
+    local = np.arange(len(v))
+    rng = np.random.default_rng(0)
+    q = np.column_stack([rng.uniform(-4, 4, 40), rng.uniform(-4, 4, 40), rng.uniform(0.1, 1.0, 40)])
+    q = np.vstack([q, [[0.0, 0.0, 30.0]],  # too far
+                   [[8.0, 0.0, 0.2]],       # beyond the face region's border
+                   [[1.0, 1.0, 2.5]]])      # an outlier for the robust weights
+    valid = np.ones(len(q), bool)
+    nrm = np.tile([0.0, 0.0, 1.0], (len(q), 1))
+    c = find_correspondences(v, t, face_tri, local, q, nrm, valid, max_distance=5.0, robust_floor=0.5)
+    np.testing.assert_allclose(c.distance[:40], -q[:40, 2], atol=1e-12)  # n . (S - q), n = +z
+    assert c.weight[40] == 0 and c.weight[41] == 0
+    assert c.weight[42] == 0  # |r| = 2.5 mm beyond the Tukey cut-off (MAD scale, floor 0.5)
+    assert np.all(c.weight[:40] > 0)
+    np.testing.assert_allclose(c.weight.sum(), 1.0)
+    # the surface points reproduce the footprints of the queries
+    pts = np.einsum("kc,kcd->kd", c.bary[:40], v[t[c.tri[:40]]])
+    np.testing.assert_allclose(pts[:, :2], q[:40, :2], atol=1e-12)
+    with pytest.raises(FitError, match="no scan point"):
+        find_correspondences(v, t, face_tri, local, q[:40] + [0, 0, 50], nrm[:40], valid[:40],
+                             max_distance=5.0, robust_floor=0.5)
+
+
+def test_active_set_holds_and_releases_bounds_by_the_gradient_sign():
+    a = np.array([0.0005, 0.9995, 0.5, 0.0, 1.0, 0.0, 0.004])
+    g = np.array([0.3, -0.2, 1.0, -0.5, -0.1, 0.2, 1e-6])
+    free = np.array([1, 1, 1, 0, 0, 0, 1], float)
+    zf = np.array([0, 0, 0, 0, 1, 0, 0], float)
+    f2, z2, zs, n = update_active_set(a, g, free, zf, tol_g=1e-4, locked=[False] * 5 + [True, False])
+    # 0: pushed below 0 -> held at 0; 1: pushed above 1 -> held at 1; 2: interior stays free;
+    # 3: held at 0 but the gradient points inside -> released; 4: held at 1, gradient pushes
+    # further out -> stays; 5: locked at 0 whatever the gradient; 6: near 0 but inside the
+    # gradient dead band (its optimum lies just above 0) -> stays free
+    np.testing.assert_array_equal(f2, [0, 0, 1, 1, 0, 0, 1])
+    np.testing.assert_array_equal(z2[[0, 1, 4, 5]], [0, 1, 1, 0])
+    assert n == 3 and np.isfinite(zs[3]) and np.isnan(zs[[0, 1, 2, 4, 5, 6]]).all()
+    assert 0.0 < float(activations_from_z(zs[3])) < 0.05
+
+
+# ------------------------------------------------------------------------------ round trip
+CONTROLS = ("zygomaticus_major_L", "zygomaticus_major_R", "frontalis_medial_L", "frontalis_medial_R",
+            "depressor_anguli_oris_L", "corrugator_R")
+TRUE = {"zygomaticus_major_L": 0.6, "zygomaticus_major_R": 0.45, "frontalis_medial_L": 0.5,
+        "frontalis_medial_R": 0.5, "depressor_anguli_oris_L": 0.0, "corrugator_R": 0.3}
+TRUE_PITCH = 5.0
+
+
+@pytest.fixture(scope="module")
+def round_trip():
+    from jaxface.anatomy.jaw import JawPose
+    from jaxface.anatomy.rig import build_rig, synthesize
+    from jaxface.fit.pipeline import SubjectOptions, fit_expressions, subject_from_rig
+    from jaxface.head import generic_head
+    from jaxface.io.scanner import scan_mesh
+    from jaxface.landmarks import Landmarks
+    from jaxface.mesh import TriMesh
+
+    head = generic_head()
+    rig = build_rig(head)
+    tris = np.asarray(rig.triangles)
+    lm = rig.info.landmarks
+
+    def scan_of(x):
+        from jaxface.fit.metrics import SurfaceIndex
+
+        cp = SurfaceIndex(np.asarray(rig.rest), tris).query(np.asarray(lm.positions))
+        pos = np.einsum("kc,kcd->kd", cp.bary, x[tris[cp.triangles]])
+        return scan_mesh(TriMesh(x, tris, validate=False), 1.0, landmarks=Landmarks(lm.names, pos),
+                         max_angle_deg=80.0)
+
+    neutral = scan_of(np.asarray(rig.rest))
+    a = rig.activations(TRUE)
+    x = np.asarray(synthesize(rig, a, JawPose(TRUE_PITCH)))
+    expr = scan_of(x)
+    subject = subject_from_rig(rig, neutral, face_mask=head.face_mask,
+                               options=SubjectOptions(levels=2, pitch_knots=6, controls=CONTROLS))
+    opt = FitOptions(n_points=800, outer_iterations=4, max_steps=20, jaw_starts=(0.0,), controls=CONTROLS)
+    (res,) = fit_expressions(subject, [expr], options=opt)
+    return subject, res, x, opt
+
+
+def test_round_trip_recovers_activations_jaw_and_surface(round_trip):
+    subject, res, x_true, _ = round_trip
+    names = list(subject.muscle_names)
+    assert res.status == "successful", res.solver_dict()
+    # the synthetic scan is matched within 0.1 mm (mean scan point -> fitted skin)
+    assert res.metrics.scan_to_fit["all"].mean < 0.1
+    assert abs(res.jaw["pitch_deg"] - TRUE_PITCH) < 0.5
+    for n, v in TRUE.items():
+        assert abs(res.activations[n] - v) < 0.05, (n, res.activations[n], v)
+    # controls outside the fit stay exactly 0
+    others = [res.activations[n] for n in names if n not in CONTROLS]
+    assert max(others) == 0.0
+    # the fitted skin (scan frame = rig frame here) matches the synthesized one over the face
+    fm = subject.face_mask
+    err = np.linalg.norm(np.asarray(res.fitted.vertices)[fm] - x_true[fm], axis=1)
+    assert np.median(err) < 0.1
+    # the AU readout names the smile and the inner-brow raise among the strongest AUs
+    top = [k for k, _ in res.strongest_aus(4, bilateral_only=True)]
+    assert "AU12" in top and "AU1" in top
+
+
+def test_round_trip_conditioning_report(round_trip):
+    from jaxface.fit.solve import jacobian_conditioning, make_priors
+
+    subject, res, _, opt = round_trip
+    pri = make_priors(subject.muscle_names, opt)
+    cond = jacobian_conditioning(res.fit.y, res.fit.points, pri, subject.muscle_names)
+    for g in ("activations", "jaw", "rigid", "all"):
+        s = np.asarray(cond["singular_values"][g])
+        assert np.all(np.diff(s) <= 1e-12) and s[0] > 0
+    # the fitted controls and the jaw pitch move the data (sensitivity in mm per unit)
+    for n in CONTROLS + ("jaw_pitch_deg",):
+        assert cond["sensitivity"][n] > 1e-3, n
+        assert np.isfinite(cond["vif"][n])
+
+
+def test_fit_rejects_unknown_controls(round_trip):
+    from jaxface.fit.solve import fit_points
+
+    subject = round_trip[0]
+    with pytest.raises(FitError, match="unknown controls"):
+        fit_points(subject.forward, subject.response, subject.fit_ids, subject.face_triangles, [],
+                   subject.landmark_tri, subject.landmark_bary, FitOptions(controls=("no_such_muscle",)))
