@@ -1,0 +1,283 @@
+"""``jaxface synth``: forward synthesis from the command line (muscles and jaw in, face out).
+
+Builds the rig of a face (the embedded default head, or a ``.ply``/``.obj`` mesh with its
+``.lm3`` Bosphorus landmarks) with either simulation backend and synthesises one face per
+requested expression: each ``--emotion`` preset (:data:`jaxface.facs.EMOTIONS`), and one
+custom expression combining every ``--au``, ``--muscle`` and ``--jaw-*`` option.
+
+Outputs, in ``--out`` (mm, the input's frame: +y up, face along +z, subject's left +x), per
+expression ``<name>``:
+
+* ``<name>.ply``: the synthesised skin (the input mesh's topology);
+* ``<name>.lm3``: its 24 landmarks, carried on the skin surface;
+* ``<name>.json``: activations (control -> [0, 1]), jaw pose (degrees, mm; after the jaw
+  model's smooth clamping), cheek puff, the AU intensities read back from the activations,
+  landmark displacements and timings;
+* ``<name>.png`` (unless ``--no-pictures``): neutral and expression, front and
+  three-quarter views.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import time
+from pathlib import Path
+from typing import List, Optional
+
+import numpy as np
+import typer
+
+from . import Units
+
+__all__ = ["register", "parse_muscles", "synthesize_files"]
+
+
+def parse_muscles(specs, muscle_names) -> dict[str, float]:
+    """``["zygomaticus_major_L=0.6", ...]`` -> ``{control: activation}``.
+
+    Raises:
+        RigError: a malformed item, an unknown control (the message lists the controls) or a
+            value outside [0, 1].
+    """
+    from ..errors import RigError
+
+    out: dict[str, float] = {}
+    names = list(muscle_names)
+    for item in specs:
+        name, _, val = str(item).partition("=")
+        name = name.strip()
+        if name not in names:
+            raise RigError(f"--muscle {item!r}: unknown control {name!r}; the rig's controls are "
+                           f"{names}.")
+        try:
+            v = float(val) if val.strip() else 1.0
+        except ValueError:
+            raise RigError(f"--muscle {item!r}: the activation must be a number in [0, 1].") from None
+        if not 0.0 <= v <= 1.0:
+            raise RigError(f"--muscle {item!r}: the activation must be in [0, 1].")
+        out[name] = v
+    return out
+
+
+def _landmark_binding(rig):
+    """(triangle ids, barycentrics) of the rig's landmarks on its rest skin."""
+    from ..fit.metrics import SurfaceIndex
+
+    lm = rig.info.landmarks
+    cp = SurfaceIndex(np.asarray(rig.rest), np.asarray(rig.triangles)).query(np.asarray(lm.positions))
+    return lm.names, cp.triangles, cp.bary
+
+
+def synthesize_files(rig, expressions, out: Path, *, pictures: bool = True, out_units: str = "mm",
+                     progress=None) -> list[dict]:
+    """Synthesise ``expressions`` on ``rig`` and write the files described in the module doc.
+
+    Args:
+        rig: a PBD or LTW rig (:func:`jaxface.anatomy.build_rig`).
+        expressions: list of ``(name, activations (M,), JawPose, cheek_puff)``.
+        out: output folder (created).
+        pictures: also write a PNG per expression.
+        out_units: unit of the written PLY and LM3 coordinates.
+        progress: called with each expression's name before it is synthesised.
+
+    Returns:
+        one summary dict per expression (what its JSON holds).
+    """
+    import jax.numpy as jnp
+
+    from ..anatomy.rig import synthesize
+    from ..facs import au_intensities
+    from ..landmarks import Landmarks, write_lm3
+    from ..mesh import save_mesh, unit_scale
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    rest = np.asarray(rig.rest)
+    tris = np.asarray(rig.triangles)
+    names, lt, lb = _landmark_binding(rig)
+    lm0 = np.einsum("kc,kcd->kd", lb, rest[tris[lt]])
+    s = 1.0 / unit_scale(out_units)  # mm -> output unit
+    summaries = []
+    for name, a, jaw, puff in expressions:
+        if progress is not None:
+            progress(name)
+        t = time.perf_counter()
+        x = np.asarray(synthesize(rig, jnp.asarray(a, rig.rest.dtype), jaw, puff))
+        secs = time.perf_counter() - t
+        if not np.all(np.isfinite(x)):
+            from ..errors import RigError
+
+            raise RigError(f"expression {name!r}: the synthesis produced non-finite positions.")
+        lm = np.einsum("kc,kcd->kd", lb, x[tris[lt]])
+        save_mesh(out / f"{name}.ply", x, tris, units=out_units)
+        write_lm3(out / f"{name}.lm3", Landmarks(names, lm * s))
+        je = rig.jaw.clamp(jaw) if hasattr(rig.jaw, "clamp") else jaw
+        jd = {"pitch_deg": float(je.pitch_deg), "yaw_deg": float(je.yaw_deg),
+              "protrusion_mm": float(je.protrusion_mm)}
+        disp = np.linalg.norm(x - rest, axis=1)
+        summary = {
+            "name": name,
+            "backend": getattr(rig, "backend", "pbd"),
+            "units": out_units,
+            "activations": {n: float(v) for n, v in zip(rig.muscle_names, np.asarray(a))},
+            "jaw": jd,
+            "cheek_puff": float(puff),
+            "au_intensities": au_intensities(np.asarray(a), rig.muscle_names, je, cheek_puff=float(puff)),
+            "displacement_mm": {"max": float(disp.max()), "mean": float(disp.mean())},
+            "landmark_displacement_mm": {n: [float(v) for v in d] for n, d in zip(names, lm - lm0)},
+            "synthesis_s": secs,
+            "files": {"mesh": f"{name}.ply", "landmarks": f"{name}.lm3"},
+        }
+        if pictures:
+            summary["files"]["picture"] = f"{name}.png"
+            _picture(out / f"{name}.png", rig, rest, x, name)
+        (out / f"{name}.json").write_text(json.dumps(summary, indent=1))
+        summaries.append(summary)
+    return summaries
+
+
+def _picture(path, rig, rest, x, title):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ..render import Layer, rasterize
+
+    face = rig.info.frame
+    lo = face.to_world([-85.0, -125.0, -120.0])
+    hi = face.to_world([85.0, 75.0, 60.0])
+    bounds = np.stack([np.minimum(lo, hi), np.maximum(lo, hi)])
+    tris = np.asarray(rig.triangles)
+    fig, axs = plt.subplots(1, 4, figsize=(12, 3.3))
+    panels = [("neutral", rest, "front"), (title, x, "front"), ("neutral", rest, (30.0, 5.0)),
+              (title, x, (30.0, 5.0))]
+    for ax, (t, v, view) in zip(axs, panels):
+        img = rasterize([Layer(v, tris)], view=view, width=360, height=360, bounds=bounds).image
+        ax.imshow(img)
+        ax.set_title(t, fontsize=10)
+        ax.axis("off")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def _safe_name(s: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", s).strip("_") or "expression"
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``jaxface synth`` to ``app``."""
+    from ..cli import _EPILOG, console, handle_errors, status_steps
+
+    @app.command(epilog=_EPILOG)
+    @handle_errors
+    def synth(
+        out: Path = typer.Option(..., "--out", "-o", file_okay=False, help="Output folder (created if missing)."),
+        emotion: List[str] = typer.Option(  # noqa: UP006
+            [], "--emotion", "-e", help="Emotion preset (happiness, sadness, surprise, fear, anger, "
+            "disgust) or 'all'; repeat for several. Each is its own output."),
+        au: List[str] = typer.Option(  # noqa: UP006
+            [], "--au", help="Action unit with intensity in [0, 1], e.g. AU12=0.8, AU12L, AU26=0.5 "
+            "(repeat, or comma-separated)."),
+        muscle: List[str] = typer.Option(  # noqa: UP006
+            [], "--muscle", "-m", help="Muscle control with activation in [0, 1], e.g. "
+            "zygomaticus_major_L=0.6 (repeat)."),
+        jaw_pitch: float = typer.Option(0.0, "--jaw-pitch", help="Jaw opening, degrees (limits -4..18)."),
+        jaw_yaw: float = typer.Option(0.0, "--jaw-yaw", help="Jaw yaw toward the subject's left, degrees (-5..5)."),
+        jaw_protrusion: float = typer.Option(0.0, "--jaw-protrusion", help="Jaw protrusion, mm (-2..6)."),
+        intensity: float = typer.Option(1.0, "--intensity", min=0.0, max=1.0,
+                                        help="Scale of the emotion presets."),
+        name: Optional[str] = typer.Option(  # noqa: UP007
+            None, "--name", help="Output name of the custom expression (default: built from the options)."),
+        mesh: Optional[Path] = typer.Option(  # noqa: UP007
+            None, "--mesh", help="Face mesh (.ply/.obj) instead of the embedded default head."),
+        landmarks: Optional[Path] = typer.Option(  # noqa: UP007
+            None, "--landmarks", help="Its .lm3 landmarks (default: beside the mesh)."),
+        units: Units = typer.Option(Units.mm, "--units", help="Units of --mesh and --landmarks."),
+        out_units: Units = typer.Option(Units.mm, "--out-units", help="Units of the written files."),
+        backend: str = typer.Option("pbd", "--backend", help="Simulation backend: pbd (position-based "
+                                    "dynamics) or ltw (Lee-Terzopoulos-Waters layered springs)."),
+        pictures: bool = typer.Option(True, "--pictures/--no-pictures", help="Write a PNG per expression."),
+        list_controls: bool = typer.Option(False, "--list-controls", help="Print the rig's muscle "
+                                           "controls and the AU table, then exit."),
+        quiet: bool = typer.Option(False, "--quiet", "-q", help="Only print errors."),
+    ):
+        """Synthesise expressions: muscle activations, AUs, emotions and jaw pose in, face meshes out.
+
+        \b
+        Examples:
+          jaxface synth --emotion all --out synth
+          jaxface synth --au AU12=0.8 --au AU26=0.4 --out smile
+          jaxface synth --muscle zygomaticus_major_L=0.7 --jaw-pitch 8 --name left_smile --out s
+          jaxface synth --mesh face.ply --landmarks face.lm3 --emotion surprise --out s
+          jaxface synth --backend ltw --emotion happiness --out s_ltw
+        """
+        from ..anatomy.jaw import JawPose
+        from ..anatomy.rig import build_rig
+        from ..errors import RigError
+        from ..facs import EMOTIONS, aus_to_controls, emotion_controls, parse_aus
+
+        if backend not in ("pbd", "ltw"):
+            raise RigError(f"--backend {backend!r}: use 'pbd' or 'ltw'.")
+        emotions = []
+        for e in emotion:
+            for item in (s.strip().lower() for s in e.split(",")):
+                if item == "all":
+                    emotions += list(EMOTIONS)
+                elif item:
+                    if item not in EMOTIONS:
+                        raise RigError(f"--emotion {item!r}: unknown preset; use one of {sorted(EMOTIONS)} or 'all'.")
+                    emotions.append(item)
+        aus = parse_aus([s for a in au for s in a.split(",") if s.strip()])
+        jaw_given = any(v != 0.0 for v in (jaw_pitch, jaw_yaw, jaw_protrusion))
+        if not (emotions or aus or muscle or jaw_given or list_controls):
+            raise RigError("nothing to synthesise: give --emotion, --au, --muscle or --jaw-* "
+                           "(see jaxface synth --help).")
+        with status_steps("jaxface synth", quiet=quiet) as step:
+            step("building the face")
+            if mesh is None:
+                from ..head import generic_head
+
+                face = generic_head()
+                rig_args = (face,)
+            else:
+                from .clone import load_face
+
+                m, lm = load_face(mesh, units.value, landmarks, "face mesh")
+                rig_args = (m, lm)
+            step(f"building the {backend} rig (skull, jaw, muscles)")
+            rig = build_rig(*rig_args, backend=backend)
+            if list_controls:
+                from ..facs import au_matrix
+
+                aus_, A = au_matrix(rig.muscle_names)
+                console.print("controls: " + ", ".join(rig.muscle_names))
+                for k, row in zip(aus_, A):
+                    used = [n for n, w in zip(rig.muscle_names, row) if w > 0]
+                    console.print(f"  {k}: {', '.join(used) if used else '(jaw / other)'}")
+                raise typer.Exit(0)
+            exprs = []
+            for e in emotions:
+                a, jaw, puff = emotion_controls(e, rig.muscle_names, intensity)
+                exprs.append((e, a, jaw, puff))
+            if aus or muscle or jaw_given:
+                a, jaw, puff = aus_to_controls(aus, rig.muscle_names)
+                for k, v in parse_muscles(muscle, rig.muscle_names).items():
+                    a[list(rig.muscle_names).index(k)] = v
+                jaw = JawPose(float(jaw.pitch_deg) + jaw_pitch, float(jaw.yaw_deg) + jaw_yaw,
+                              float(jaw.protrusion_mm) + jaw_protrusion)
+                label = name or _safe_name("_".join(
+                    [f"{k}-{v:g}" for k, v in aus.items()] + [m_.replace("=", "-") for m_ in muscle]
+                    + ([f"jaw{jaw_pitch:g}_{jaw_yaw:g}_{jaw_protrusion:g}"] if jaw_given else []))[:80])
+                exprs.append((label, np.asarray(a, float), jaw, puff))
+            step(f"compiling and synthesising {len(exprs)} expression(s)")
+            res = synthesize_files(rig, exprs, out, pictures=pictures, out_units=out_units.value)
+        if not quiet:
+            for r in res:
+                top = sorted(r["au_intensities"].items(), key=lambda kv: -kv[1])[:4]
+                console.print(f"  {r['name']}: max displacement {r['displacement_mm']['max']:.1f} mm, "
+                              f"jaw {r['jaw']['pitch_deg']:.1f} deg, strongest AUs "
+                              + ", ".join(f"{k} {v:.2f}" for k, v in top if v > 0))
+            console.print(f"wrote {len(res)} expression(s) to {out}")

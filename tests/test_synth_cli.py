@@ -1,0 +1,88 @@
+"""``jaxface synth`` as a user runs it (a subprocess on the default head), its outputs checked
+against the library call, and bad inputs (clear message, exit code 2, nothing written)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from test_cli_commands import run_cli, run_main
+
+from jaxface.cli import EXIT_USAGE
+
+
+@pytest.fixture(scope="module")
+def synth_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("synth")
+    proc = run_cli("synth", "--au", "AU26=0.5", "--muscle", "zygomaticus_major_L=0.8",
+                   "--name", "custom", "--emotion", "surprise", "--out", out, timeout=600)
+    return out, proc
+
+
+def test_synth_writes_meshes_landmarks_json_and_pictures(synth_run):
+    from jaxface.anatomy.jaw import JawPose
+    from jaxface.anatomy.rig import build_rig, synthesize
+    from jaxface.facs import aus_to_controls
+    from jaxface.head import generic_head
+    from jaxface.landmarks import read_lm3
+    from jaxface.mesh import load_mesh
+
+    out, proc = synth_run
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    for name in ("custom", "surprise"):
+        for ext in ("ply", "lm3", "json", "png"):
+            assert (out / f"{name}.{ext}").stat().st_size > 0, (name, ext)
+    doc = json.loads((out / "custom.json").read_text())
+    assert doc["activations"]["zygomaticus_major_L"] == pytest.approx(0.8)
+    assert doc["activations"]["zygomaticus_major_R"] == 0.0
+    # AU26 at 0.5 opens the jaw (the AU table's pitch, half of it) and reads back as AU26
+    assert doc["jaw"]["pitch_deg"] > 2.0 and doc["au_intensities"]["AU26"] > 0.3
+    assert doc["units"] == "mm" and doc["backend"] == "pbd"
+
+    # the written mesh is the library's synthesis of the same controls (independent call)
+    head = generic_head()
+    rig = build_rig(head)
+    a, jaw, puff = aus_to_controls({"AU26": 0.5}, rig.muscle_names)
+    a[list(rig.muscle_names).index("zygomaticus_major_L")] = 0.8
+    x = np.asarray(synthesize(rig, a, JawPose(jaw.pitch_deg, jaw.yaw_deg, jaw.protrusion_mm), puff))
+    m = load_mesh(out / "custom.ply", validate=False)
+    np.testing.assert_array_equal(m.triangles, np.asarray(rig.triangles))
+    np.testing.assert_allclose(m.vertices, x, atol=1e-3)  # PLY stores float32
+    # the left zygomaticus pulls the left mouth corner (subject's left = +x) outward and up
+    # against the jaw opening that lowers both corners alike
+    lm = read_lm3(out / "custom.lm3")
+    d = {n: np.asarray(v) for n, v in doc["landmark_displacement_mm"].items()}
+    left, right = d["Left mouth corner"], d["Right mouth corner"]
+    assert left[0] > 1.0 and left[0] > 2 * abs(right[0])
+    assert left[1] - right[1] > 1.0
+    assert len(lm.names) == len(d)
+    # the chin went down with the open jaw
+    assert d["Chin middle"][1] < -2.0
+
+
+def test_synth_bad_inputs(tmp_path, capsys):
+    code, err = run_main(capsys, "synth", "--emotion", "glee", "--out", tmp_path / "a")
+    assert code == EXIT_USAGE and "unknown preset" in err and "happiness" in err
+    code, err = run_main(capsys, "synth", "--out", tmp_path / "b")
+    assert code == EXIT_USAGE and "nothing to synthesise" in err
+    code, err = run_main(capsys, "synth", "--au", "AU12=3", "--out", tmp_path / "c")
+    assert code == EXIT_USAGE and "[0, 1]" in err
+    code, err = run_main(capsys, "synth", "--au", "AU12", "--backend", "fem", "--out", tmp_path / "d")
+    assert code == EXIT_USAGE and "pbd" in err
+    assert not any((tmp_path / s).exists() for s in "abcd")
+
+
+def test_parse_muscles_names_the_controls():
+    from jaxface.commands.synth import parse_muscles
+    from jaxface.errors import RigError
+
+    names = ("zygomaticus_major_L", "zygomaticus_major_R")
+    assert parse_muscles(["zygomaticus_major_L=0.25", "zygomaticus_major_R"], names) == {
+        "zygomaticus_major_L": 0.25, "zygomaticus_major_R": 1.0}
+    with pytest.raises(RigError, match="unknown control 'smile'.*zygomaticus_major_L"):
+        parse_muscles(["smile=0.5"], names)
+    with pytest.raises(RigError, match=r"\[0, 1\]"):
+        parse_muscles(["zygomaticus_major_L=1.5"], names)
+    with pytest.raises(RigError, match="number"):
+        parse_muscles(["zygomaticus_major_L=lots"], names)
