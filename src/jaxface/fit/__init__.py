@@ -10,6 +10,11 @@ Submodules (NumPy/SciPy at build time; nothing here is on the jit path):
 * :mod:`jaxface.fit.baselines`: B0 (registered neutral) and B1 (landmark TPS warp).
 * :mod:`jaxface.fit.evaluation`: the issue-7 ground-truth protocol for the shared
   ``bosphorus_style`` data.
+* :mod:`jaxface.fit.solve` (JAX): the inverse solve: activations, jaw pose and a rigid
+  correction by optimistix Levenberg-Marquardt on point-to-plane + landmark residuals.
+* :mod:`jaxface.fit.pipeline`: neutral scan -> subject rig (:func:`prepare_subject`);
+  expression scans -> activations, AUs, fitted skin, metrics, baselines
+  (:func:`fit_expressions`); what ``jaxface fit`` runs.
 """
 
 from __future__ import annotations
@@ -36,8 +41,13 @@ _LAZY = {
     "evaluation_region": "jaxface.fit.evaluation",
     "evaluate_against_truth": "jaxface.fit.evaluation",
     "ict_template": "jaxface.fit.evaluation",
+    "FitOptions": "jaxface.fit.solve",
+    "SubjectOptions": "jaxface.fit.pipeline",
+    "prepare_subject": "jaxface.fit.pipeline",
+    "fit_expressions": "jaxface.fit.pipeline",
+    "ExpressionFit": "jaxface.fit.pipeline",
 }
-_SUBMODULES = {"align", "register", "metrics", "baselines", "evaluation"}
+_SUBMODULES = {"align", "register", "metrics", "baselines", "evaluation", "solve", "pipeline"}
 
 __all__ = sorted(set(_LAZY) | _SUBMODULES)
 
