@@ -22,7 +22,7 @@ def run_cli(*args, cwd=None, timeout=300):
 @pytest.fixture(scope="module")
 def demo_dir(tmp_path_factory):
     out = tmp_path_factory.mktemp("demo") / "out"
-    proc = run_cli("demo", "--out", out, "--size", 200)
+    proc = run_cli("demo", "--out", out, "--size", 200, timeout=1200)
     return out, proc
 
 
@@ -32,7 +32,32 @@ def test_demo_writes_its_files(demo_dir):
     names = {"head.ply", "head.lm3", "head.png", "upper_teeth.ply", "lower_teeth.ply", "eye_left.ply",
              "eye_right.ply"}
     assert names <= {p.name for p in out.iterdir()}
-    assert "head.ply" in proc.stderr            # the summary table lists the files
+    assert "report.md" in proc.stderr            # the summary names the report
+
+
+def test_demo_showcase_report(demo_dir):
+    """The showcase: emotions and AU pictures, Bosphorus-style scans of synthetic expressions
+    that load back, and their fits recovering the known jaw pose and the skin."""
+    import json
+
+    from jaxface.io import load_scan
+    from jaxface.showcase import SYNTHETIC_SCANS
+
+    out, _ = demo_dir
+    rep = json.loads((out / "report.json").read_text())
+    for name in ["emotions.png", "aus.png", "report.md"] + [f"emotion_{e}.png" for e in
+                                                           ("happiness", "sadness", "surprise", "fear", "anger", "disgust")]:
+        assert (out / name).stat().st_size > 1000, name
+    assert [f["stem"] for f in rep["fits"]] == list(SYNTHETIC_SCANS)
+    for f in rep["fits"]:
+        scan = load_scan(out / "scans" / f"{f['stem']}.bnt")
+        assert len(scan.landmarks.names) >= 22
+        assert (out / f["files"]["json"]).is_file() and (out / f["files"]["picture"]).is_file()
+        # synthetic scans of the rig itself: the fit reproduces the skin and the jaw
+        assert f["skin_error_mm"]["mean"] < 0.1, f
+        assert abs(f["jaw_fit"]["pitch_deg"] - f["jaw_true"]["pitch_deg"]) < 0.5, f
+    md = (out / "report.md").read_text()
+    assert "emotions.png" in md and "demo_E_HAPPY_0" in md
 
 
 def test_demo_files_load_back(demo_dir):

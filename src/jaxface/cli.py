@@ -202,44 +202,72 @@ def demo(
                              help="Picture panel size in pixels (128-4000)."),
     labels: bool = typer.Option(False, "--labels/--no-labels",
                                 help="Write the landmark names on the picture."),
-    picture: bool = typer.Option(True, "--picture/--no-picture", help="Render the PNG."),
+    picture: bool = typer.Option(True, "--picture/--no-picture", help="Render the head PNG."),
+    showcase: bool = typer.Option(True, "--showcase/--head-only",
+                                  help="Also build the rig, synthesise emotions and AUs, scan and fit "
+                                  "them back, and write report.md/report.json (about 2-4 min on 2 CPU cores)."),
+    fit: bool = typer.Option(True, "--fit/--no-fit", help="Showcase: scan and fit back synthetic expressions."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="Only print errors."),
 ):
-    """Build the default head and write it to a folder.
+    """The showcase on the embedded default head: forward synthesis and inverse fitting.
 
-    Writes OUT/head.ply (skin, mm), OUT/head.lm3 (24 Bosphorus landmarks, mm),
-    OUT/upper_teeth.ply, OUT/lower_teeth.ply, OUT/eye_left.ply, OUT/eye_right.ply and
-    OUT/head.png (front and side views with the landmarks).
+    Writes OUT/head.ply (skin, mm), OUT/head.lm3 (24 Bosphorus landmarks, mm), teeth and eye
+    meshes and OUT/head.png; then (unless --head-only) builds the rig and writes the six
+    emotions (OUT/emotions.png, OUT/emotion_<name>.png) and single action units (OUT/aus.png),
+    Bosphorus-style scans of synthetic expressions (OUT/scans/*.bnt, *.lm3), their fits
+    (OUT/fits/<stem>.json, .fitted.ply, .fit.png: scan, neutral, fit, error in mm) and
+    OUT/report.json + OUT/report.md.
 
     \b
     Examples:
       jaxface demo --out demo
-      jaxface demo --out /tmp/head --size 900 --labels
-      jaxface demo --out demo --no-picture --quiet
+      jaxface demo --out demo --no-fit          # forward part only
+      jaxface demo --out /tmp/head --head-only --size 900 --labels
     """
     from .head import generic_head, save_head
 
+    report = None
     with status_steps("jaxface demo", quiet=quiet) as step:
-        step("building the default head")
-        head = generic_head()
-        step("writing meshes and landmarks" + (" and rendering the picture" if picture else ""))
-        files = save_head(head, out, picture=picture, panel_px=size, labels=labels)
-    if not quiet:
-        table = Table(title=f"jaxface demo: files written to {out}", show_lines=False)
-        table.add_column("file")
-        table.add_column("content")
-        table.add_column("size", justify="right")
-        desc = {
-            "skin": f"skin mesh, {head.mesh.n_vertices} vertices, {head.mesh.n_triangles} triangles (mm)",
-            "landmarks": f"{len(head.landmarks.names)} Bosphorus landmarks (mm)",
-            "upper_teeth": f"upper teeth, {head.upper_teeth.n_vertices} vertices",
-            "lower_teeth": f"lower teeth, {head.lower_teeth.n_vertices} vertices",
-            "eye_left": "left eyeball", "eye_right": "right eyeball",
-            "picture": "front + side view with landmarks",
-        }
-        for key, path in files.items():
-            table.add_row(Path(path).name, desc.get(key, key), f"{os.path.getsize(path) / 1024:.0f} KiB")
+        if showcase and not labels:
+            from .showcase import run_showcase
+
+            report = run_showcase(out, fit=fit, panel_px=size, progress=step)
+            files = {"report": out / "report.md", "report_json": out / "report.json"}
+        else:
+            step("building the default head")
+            head = generic_head()
+            step("writing meshes and landmarks" + (" and rendering the picture" if picture else ""))
+            files = save_head(head, out, picture=picture, panel_px=size, labels=labels)
+    if quiet:
+        return
+    if report is not None:
+        table = Table(title=f"jaxface demo: report in {out / 'report.md'}")
+        for col in ("scan", "status", "scan->fit mm", "skin error mm", "jaw pitch true/fit", "strongest AUs"):
+            table.add_column(col)
+        for f in report.get("fits", []):
+            table.add_row(f["stem"], f["status"], f"{f['scan_to_fit_mean_mm']:.3f}",
+                          f"{f['skin_error_mm']['mean']:.3f}",
+                          f"{f['jaw_true']['pitch_deg']:.1f} / {f['jaw_fit']['pitch_deg']:.2f}",
+                          ", ".join(f"{k} {v:.2f}" for k, v in f["strongest_aus"][:3]))
         console.print(table)
+        console.print(f"pictures: {out / 'emotions.png'}, {out / 'aus.png'}, {out / 'fits'}/*.fit.png; "
+                      f"total {report['timings']['total_s']:.0f} s")
+        return
+    table = Table(title=f"jaxface demo: files written to {out}", show_lines=False)
+    table.add_column("file")
+    table.add_column("content")
+    table.add_column("size", justify="right")
+    desc = {
+        "skin": f"skin mesh, {head.mesh.n_vertices} vertices, {head.mesh.n_triangles} triangles (mm)",
+        "landmarks": f"{len(head.landmarks.names)} Bosphorus landmarks (mm)",
+        "upper_teeth": f"upper teeth, {head.upper_teeth.n_vertices} vertices",
+        "lower_teeth": f"lower teeth, {head.lower_teeth.n_vertices} vertices",
+        "eye_left": "left eyeball", "eye_right": "right eyeball",
+        "picture": "front + side view with landmarks",
+    }
+    for key, path in files.items():
+        table.add_row(Path(path).name, desc.get(key, key), f"{os.path.getsize(path) / 1024:.0f} KiB")
+    console.print(table)
 
 
 # ----------------------------------------------------------------------------- extensions
