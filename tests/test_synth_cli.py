@@ -86,3 +86,17 @@ def test_parse_muscles_names_the_controls():
         parse_muscles(["zygomaticus_major_L=1.5"], names)
     with pytest.raises(RigError, match="number"):
         parse_muscles(["zygomaticus_major_L=lots"], names)
+
+
+def test_synth_ltw_backend(tmp_path):
+    """The same command drives the Lee-Terzopoulos-Waters backend (issue 6)."""
+    out = tmp_path / "ltw"
+    proc = run_cli("synth", "--backend", "ltw", "--au", "AU12=0.8", "--name", "smile", "--no-pictures",
+                   "--out", out, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    doc = json.loads((out / "smile.json").read_text())
+    assert doc["backend"] == "ltw" and not (out / "smile.png").exists()
+    # AU12 pulls both mouth corners outward (subject's left = +x) and up
+    left = np.asarray(doc["landmark_displacement_mm"]["Left mouth corner"])
+    right = np.asarray(doc["landmark_displacement_mm"]["Right mouth corner"])
+    assert left[0] > 0.5 and right[0] < -0.5 and left[1] > 0.5 and right[1] > 0.5

@@ -320,7 +320,7 @@ def subject_from_rig(
         neutral=neutral, registration=reg, rig=rig, forward=forward, response=response, fit_ids=fit_ids,
         face_triangles=face_tri, landmark_names=tuple(names), landmark_tri=np.asarray(l_tri),
         landmark_bary=np.asarray(l_bary), neutral_index=SurfaceIndex(v, tr),
-        face_index=SurfaceIndex(rest, tris, face_tri), backend="pbd", timings=timings,
+        face_index=SurfaceIndex(rest, tris, face_tri), backend=getattr(rig, "backend", "pbd"), timings=timings,
     )
 
 
