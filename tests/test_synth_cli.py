@@ -92,7 +92,7 @@ def test_synth_ltw_backend(tmp_path):
     """The same command drives the Lee-Terzopoulos-Waters backend (issue 6)."""
     out = tmp_path / "ltw"
     proc = run_cli("synth", "--backend", "ltw", "--au", "AU12=0.8", "--name", "smile", "--no-pictures",
-                   "--out", out, timeout=600)
+                   "--compare-backends", "--out", out, timeout=900)
     assert proc.returncode == 0, proc.stderr[-3000:]
     doc = json.loads((out / "smile.json").read_text())
     assert doc["backend"] == "ltw" and not (out / "smile.png").exists()
@@ -100,3 +100,9 @@ def test_synth_ltw_backend(tmp_path):
     left = np.asarray(doc["landmark_displacement_mm"]["Left mouth corner"])
     right = np.asarray(doc["landmark_displacement_mm"]["Right mouth corner"])
     assert left[0] > 0.5 and right[0] < -0.5 and left[1] > 0.5 and right[1] > 0.5
+    # the six emotions, PBD next to LTW with their difference: 7 rows x 3 panels
+    from matplotlib.image import imread
+
+    img = imread(out / "backends_emotions.png")
+    assert img.shape[0] > 2 * img.shape[1]
+    assert (img[..., :3].mean(axis=2) < 0.9).mean() > 0.05

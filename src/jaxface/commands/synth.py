@@ -200,6 +200,9 @@ def register(app: typer.Typer) -> None:
         backend: str = typer.Option("pbd", "--backend", help="Simulation backend: pbd (position-based "
                                     "dynamics) or ltw (Lee-Terzopoulos-Waters layered springs)."),
         pictures: bool = typer.Option(True, "--pictures/--no-pictures", help="Write a PNG per expression."),
+        compare_backends: bool = typer.Option(
+            False, "--compare-backends", help="Also build the other backend's rig on the same face and write "
+            "backends_emotions.png: the six emotions, PBD next to LTW, with their distance (mm) as a heat map."),
         list_controls: bool = typer.Option(False, "--list-controls", help="Print the rig's muscle "
                                            "controls and the AU table, then exit."),
         quiet: bool = typer.Option(False, "--quiet", "-q", help="Only print errors."),
@@ -213,6 +216,7 @@ def register(app: typer.Typer) -> None:
           jaxface synth --muscle zygomaticus_major_L=0.7 --jaw-pitch 8 --name left_smile --out s
           jaxface synth --mesh face.ply --landmarks face.lm3 --emotion surprise --out s
           jaxface synth --backend ltw --emotion happiness --out s_ltw
+          jaxface synth --compare-backends --out compare
         """
         from ..anatomy.jaw import JawPose
         from ..anatomy.rig import build_rig
@@ -232,7 +236,7 @@ def register(app: typer.Typer) -> None:
                     emotions.append(item)
         aus = parse_aus([s for a in au for s in a.split(",") if s.strip()])
         jaw_given = any(v != 0.0 for v in (jaw_pitch, jaw_yaw, jaw_protrusion))
-        if not (emotions or aus or muscle or jaw_given or list_controls):
+        if not (emotions or aus or muscle or jaw_given or list_controls or compare_backends):
             raise RigError("nothing to synthesise: give --emotion, --au, --muscle or --jaw-* "
                            "(see jaxface synth --help).")
         with status_steps("jaxface synth", quiet=quiet) as step:
@@ -272,8 +276,20 @@ def register(app: typer.Typer) -> None:
                     [f"{k}-{v:g}" for k, v in aus.items()] + [m_.replace("=", "-") for m_ in muscle]
                     + ([f"jaw{jaw_pitch:g}_{jaw_yaw:g}_{jaw_protrusion:g}"] if jaw_given else []))[:80])
                 exprs.append((label, np.asarray(a, float), jaw, puff))
-            step(f"compiling and synthesising {len(exprs)} expression(s)")
-            res = synthesize_files(rig, exprs, out, pictures=pictures, out_units=out_units.value)
+            res = []
+            if exprs:
+                step(f"compiling and synthesising {len(exprs)} expression(s)")
+                res = synthesize_files(rig, exprs, out, pictures=pictures, out_units=out_units.value)
+            if compare_backends:
+                from ..ltw.pictures import compare_emotions
+
+                other = "ltw" if backend == "pbd" else "pbd"
+                step(f"building the {other} rig on the same face")
+                rig2 = build_rig(*rig_args, backend=other)
+                pbd_rig, ltw_rig = (rig, rig2) if backend == "pbd" else (rig2, rig)
+                step("synthesising the six emotions with both backends")
+                out.mkdir(parents=True, exist_ok=True)
+                cmp_path = compare_emotions(out / "backends_emotions.png", ltw_rig, pbd_rig, intensity=intensity)
         if not quiet:
             for r in res:
                 top = sorted(r["au_intensities"].items(), key=lambda kv: -kv[1])[:4]
@@ -281,3 +297,5 @@ def register(app: typer.Typer) -> None:
                               f"jaw {r['jaw']['pitch_deg']:.1f} deg, strongest AUs "
                               + ", ".join(f"{k} {v:.2f}" for k, v in top if v > 0))
             console.print(f"wrote {len(res)} expression(s) to {out}")
+            if compare_backends:
+                console.print(f"backend comparison: {cmp_path}")
