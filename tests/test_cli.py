@@ -45,7 +45,7 @@ def test_demo_showcase_report(demo_dir):
 
     out, _ = demo_dir
     rep = json.loads((out / "report.json").read_text())
-    for name in ["emotions.png", "aus.png", "report.md"] + [f"emotion_{e}.png" for e in
+    for name in ["emotions.png", "aus.png", "muscle_map.png", "jaw.png", "report.md"] + [f"emotion_{e}.png" for e in
                                                            ("happiness", "sadness", "surprise", "fear", "anger", "disgust")]:
         assert (out / name).stat().st_size > 1000, name
     assert [f["stem"] for f in rep["fits"]] == list(SYNTHETIC_SCANS)

@@ -212,7 +212,8 @@ def demo(
     """The showcase on the embedded default head: forward synthesis and inverse fitting.
 
     Writes OUT/head.ply (skin, mm), OUT/head.lm3 (24 Bosphorus landmarks, mm), teeth and eye
-    meshes and OUT/head.png; then (unless --head-only) builds the rig and writes the six
+    meshes and OUT/head.png; then (unless --head-only) builds the rig, draws the muscle map
+    (OUT/muscle_map.png) and the jaw model (OUT/jaw.png) and writes the six
     emotions (OUT/emotions.png, OUT/emotion_<name>.png) and single action units (OUT/aus.png),
     Bosphorus-style scans of synthetic expressions (OUT/scans/*.bnt, *.lm3), their fits
     (OUT/fits/<stem>.json, .fitted.ply, .fit.png: scan, neutral, fit, error in mm) and

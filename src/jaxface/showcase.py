@@ -3,7 +3,8 @@
 :func:`run_showcase` (units mm, degrees; frame +y up, face along +z, subject's left +x):
 
 1. builds the default head and writes it (``head.ply``, ``head.lm3``, teeth, eyes, ``head.png``);
-2. builds its rig (estimated skull, jaw, default muscle map) and synthesises the six emotion
+2. builds its rig (estimated skull, jaw, default muscle map), draws the muscle map
+   (``muscle_map.png``) and the jaw model (``jaw.png``), and synthesises the six emotion
    presets (``emotions.png``, ``emotion_<name>.png``) and single action units (``aus.png``);
 3. makes Bosphorus-style range scans (``.bnt`` + ``.lm3``, 1 mm grid, virtual scanner) of the
    neutral and of a few synthetic expressions with known activations and jaw pose;
@@ -46,7 +47,7 @@ def run_showcase(out, *, fit: bool = True, panel_px: int = 600, progress: Callab
     """
     import jax
 
-    from .anatomy.pictures import emotion_pictures, expression_sheet
+    from .anatomy.pictures import emotion_pictures, expression_sheet, jaw_diagram, muscle_map_picture
     from .anatomy.rig import build_rig
     from .head import generic_head, save_head
 
@@ -74,6 +75,10 @@ def run_showcase(out, *, fit: bool = True, panel_px: int = 600, progress: Callab
     say("building the rig (skull, jaw, muscle map, skin binding)")
     rig = timed("rig_s", build_rig, head)
     report["rig"] = {"controls": list(rig.muscle_names), "n_controls": rig.n_controls}
+
+    say("drawing the muscle map and the jaw model")
+    report["files"]["muscle_map"] = timed("muscle_map_s", muscle_map_picture, out / "muscle_map.png", rig).name
+    report["files"]["jaw"] = timed("jaw_s", jaw_diagram, out / "jaw.png", rig).name
 
     say("synthesising and rendering the six emotions")
     paths = timed("emotions_s", emotion_pictures, rig, out)
@@ -169,6 +174,7 @@ def _markdown(rep: dict) -> str:
     L = ["# jaxface demo report", "",
          f"Default head: {rep['head']['vertices']} vertices, {rep['head']['landmarks']} landmarks; "
          f"rig with {rep['rig']['n_controls']} muscle controls. Units: mm, degrees. Frame: {rep['frame']}.", "",
+         "## Anatomy: muscle map and jaw", "", "![muscle map](muscle_map.png)", "", "![jaw](jaw.png)", "",
          "## Forward: emotions and action units", "", "![emotions](emotions.png)", "", "![aus](aus.png)", ""]
     if rep.get("fits"):
         L += ["## Inverse: synthetic Bosphorus-style scans fitted back", "",

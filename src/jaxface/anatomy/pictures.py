@@ -15,7 +15,7 @@ import numpy as np
 from .. import facs
 from .rig import Rig, synthesize
 
-__all__ = ["emotion_pictures", "expression_sheet", "EMOTION_ORDER"]
+__all__ = ["emotion_pictures", "expression_sheet", "muscle_map_picture", "jaw_diagram", "EMOTION_ORDER"]
 
 EMOTION_ORDER = ("happiness", "sadness", "surprise", "fear", "anger", "disgust")
 
@@ -98,3 +98,127 @@ def emotion_pictures(rig: Rig, out_dir, *, intensity: float = 1.0, px: int = 420
                                   [("neutral", {})] + [(n, facs.EMOTIONS[n]) for n in EMOTION_ORDER],
                                   views=("front",), ncol=4, px=px))
     return paths
+
+
+BONE = (0.88, 0.85, 0.76)
+
+
+def _muscle_colors(placed):
+    """One colour per muscle base name (left and right share it)."""
+    import matplotlib
+
+    cmap = matplotlib.colormaps["tab20"]
+    bases = sorted({p.spec.base for p in placed})
+    return {b: cmap(i % 20)[:3] for i, b in enumerate(bases)}
+
+
+def muscle_map_picture(path, rig: Rig, *, px: int = 460) -> Path:
+    """The muscle map: muscles on the skull (front and three-quarter views, one colour per
+    muscle, left and right alike) and their action lines drawn on the face (origin -> insertion
+    at the skin; hidden parts dashed). Units: mm.
+
+    Args:
+        path: PNG file to write.
+        rig: a rig from :func:`jaxface.anatomy.build_rig` (its build-time ``info``).
+        px: pixels per panel.
+
+    Returns:
+        the written path.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Patch
+
+    from ..render import Layer, draw
+
+    info = rig.info
+    skull = info.skull
+    colors = _muscle_colors(info.placed)
+    bone = [Layer(np.asarray(skull.cranium.vertices), np.asarray(skull.cranium.triangles), color=BONE),
+            Layer(np.asarray(skull.mandible.vertices), np.asarray(skull.mandible.triangles), color=BONE)]
+    muscles = [Layer(np.asarray(p.mesh.vertices), np.asarray(p.mesh.triangles), color=colors[p.spec.base],
+                     specular=0.05) for p in info.placed if p.mesh is not None]
+    skin = np.asarray(rig.rest)
+    lo, hi = skin.min(axis=0), skin.max(axis=0)
+    bounds = np.stack([lo, hi])
+    lines, lcol = [], []
+    for p in info.placed:
+        if p.origin_skin is None or p.insertion_skin is None:
+            continue
+        a = np.asarray(p.origin_skin, float).reshape(-1, 3)[0]
+        b = np.asarray(p.insertion_skin, float).reshape(-1, 3)[0]
+        lines.append(np.linspace(a, b, 12))
+        lcol.append(colors[p.spec.base])
+    fig, axs = plt.subplots(1, 3, figsize=(3 * px / 100 + 2.2, px / 100 + 0.4))
+    draw(axs[0], bone + muscles, "front", width=px, height=px, bounds=bounds, title="muscles on the skull")
+    draw(axs[1], bone + muscles, (35.0, 5.0), width=px, height=px, bounds=bounds, title="three-quarter view")
+    draw(axs[2], [Layer(skin, np.asarray(rig.triangles))], "front", width=px, height=px, bounds=bounds,
+         polylines=lines, polyline_colors=lcol, polyline_width=2.0,
+         title="action lines on the face (origin -> insertion)")
+    handles = [Patch(color=c, label=b.replace("_", " ")) for b, c in colors.items()]
+    fig.legend(handles=handles, loc="center right", fontsize=7, frameon=False)
+    fig.tight_layout(rect=(0, 0, 0.83, 1))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def jaw_diagram(path, rig: Rig, pose=None, *, px: int = 460) -> Path:
+    """The jaw model: skull at rest (bone) and the mandible at ``pose`` (blue), with the pitch
+    axis through the condyles (red), the yaw axis (green) and the protrusion direction (blue
+    arrow), in side and front views, and the limits in the title. Units: mm, degrees.
+
+    Args:
+        path: PNG file to write.
+        rig: the rig (its :class:`~jaxface.anatomy.jaw.JawModel` and skull).
+        pose: a :class:`~jaxface.anatomy.jaw.JawPose` to show (default: pitch 12 deg, yaw 3 deg,
+            protrusion 2 mm); smoothly clamped into the limits as in a synthesis.
+        px: pixels per panel.
+
+    Returns:
+        the written path.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ..render import Layer, draw
+    from .jaw import JawPose
+
+    pose = JawPose(12.0, 3.0, 2.0) if pose is None else pose
+    jm = rig.jaw
+    skull = rig.info.skull
+    R, t = (np.asarray(v, float) for v in jm.transform(pose))
+    mand = np.asarray(skull.mandible.vertices, float)
+    moved = mand @ R.T + t
+    c = np.asarray(jm.pivot, float)
+    axes = [np.stack([c - 55 * np.asarray(jm.pitch_axis), c + 55 * np.asarray(jm.pitch_axis)]),
+            np.stack([c, c + 45 * np.asarray(jm.yaw_axis)]),
+            np.stack([c, c + 40 * np.asarray(jm.protrusion_dir)])]
+    axes = [np.linspace(a[0], a[1], 16) for a in axes]
+    cols = [(0.85, 0.1, 0.1), (0.1, 0.6, 0.1), (0.1, 0.3, 0.9)]
+    layers = [Layer(np.asarray(skull.cranium.vertices), np.asarray(skull.cranium.triangles), color=BONE),
+              Layer(moved, np.asarray(skull.mandible.triangles), color=(0.55, 0.7, 0.95))]
+    allv = np.concatenate([np.asarray(skull.cranium.vertices), mand, moved])
+    bounds = np.stack([allv.min(0) - 10, allv.max(0) + 10])
+    pc = jm.clamp(pose)
+    fig, axs = plt.subplots(1, 2, figsize=(2 * px / 100, px / 100 + 0.6))
+    for ax, view in zip(axs, ("side", "front")):
+        draw(ax, layers, view, width=px, height=px, bounds=bounds, polylines=axes, polyline_colors=cols,
+             polyline_width=2.5, title=view)
+    fig.suptitle(
+        f"jaw pose: pitch {float(pc.pitch_deg):.1f} deg (limits {jm.pitch_limits[0]:g}..{jm.pitch_limits[1]:g}), "
+        f"yaw {float(pc.yaw_deg):.1f} deg ({jm.yaw_limits[0]:g}..{jm.yaw_limits[1]:g}), protrusion "
+        f"{float(pc.protrusion_mm):.1f} mm ({jm.protrusion_limits[0]:g}..{jm.protrusion_limits[1]:g})\n"
+        "red: pitch axis through the condyles, green: yaw axis, blue: protrusion", fontsize=8)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
