@@ -66,6 +66,19 @@ STIFFNESS = {
 }
 STIFFNESS["linear"] = STIFFNESS["sheet"]
 POSITION_STIFFNESS = 0.2  # the same for every kind
+
+#: Modiolus: the fibromuscular node lateral to each mouth corner where zygomaticus major,
+#: risorius, levator and depressor anguli oris, buccinator and orbicularis oris interlace. The
+#: contraction of a corner muscle pulls the whole node: the orbicularis oris's ring samples near
+#: a side's modiolus (Gaussian weight, sigma :data:`MODIOLUS_SIGMA_MM`) move, on top of their own
+#: support, by ``MODIOLUS_GAIN`` x the summed *contraction* displacement of that side's corner
+#: muscles' insertion ends (the contracted minus the uncontracted end of each fibre on the same
+#: current support, so jaw motion is not counted twice). Without it the sphincter's corner
+#: samples each lie on one of risorius, zygomaticus major or depressor anguli oris, and the
+#: corner followed about a quarter of a zygomaticus pull.
+MODIOLUS_GAIN = 0.6
+MODIOLUS_SIGMA_MM = 9.0
+MODIOLUS_MAX_OFFSET_MM = 10.0  # corner muscles: insertion within this of the mouth corner
 STIFFNESS["passive"] = STIFFNESS["sheet"]
 
 
@@ -131,6 +144,11 @@ class MuscleSystem(eqx.Module):
         sph_ids, sph_w: ``(K, 3, n, 3)`` the three rings of every sphincter (inner, middle,
             outer); sph_bottom: ``(K, 3, n)``; sph_ctrl: ``(K,)``; sph_cmax: ``(K,)``;
             sph_axes: ``(K, 2, 3)``; sph_ab: ``(K, 2)`` semi-axes, mm.
+        mod_w, mod_side: ``(K, 3, n)`` modiolus weight in [0, 1] and side (0 left, 1 right)
+            of every sphincter ring sample; mod_end, mod_last, mod_fw: ``(2, J)`` per side the
+            corner-muscle fibres' insertion-end sample (flat index into the ``(F * H)``
+            samples), their action-line end (fibre index) and weight (1 / fibres of the
+            muscle; 0 pads): see :data:`MODIOLUS_GAIN`.
         groups: fused distance and bending groups (all muscles).
         vol_*: per-muscle volume data (:func:`multi_volume_project`).
         pos_inv_count: ``(Nm,)``; inv_mass: ``(Nm,)``.
@@ -157,6 +175,11 @@ class MuscleSystem(eqx.Module):
     sph_cmax: jax.Array
     sph_axes: jax.Array
     sph_ab: jax.Array
+    mod_w: jax.Array
+    mod_side: jax.Array
+    mod_end: jax.Array
+    mod_last: jax.Array
+    mod_fw: jax.Array
     groups: tuple
     vol_tri: jax.Array
     vol_owner: jax.Array
@@ -285,6 +308,7 @@ def build_muscle_system(placed: list[PlacedMuscle], registry, control_index: dic
     sp = SupportPoints([], [], muscle_offset)
     dist, bend, vol = [], [], []
     fib = []   # (ids (m,3), w (m,3), ctrl, cmax, h, bottom (h,))
+    mod_fib = {0: [], 1: []}  # side -> (fibre index, weight, insertion-end bottom particle)
     sph = []
     for mi, p in enumerate(with_mesh):
         off = offsets[mi]
@@ -308,11 +332,16 @@ def build_muscle_system(placed: list[PlacedMuscle], registry, control_index: dic
                             bottom=off + np.arange(3 * g.w).reshape(3, g.w), ctrl=ctrl, cmax=cmax,
                             axes=p.axes, ab=p.semi_axes))
         else:
+            corner = _is_corner_muscle(p)
             for j, f in enumerate(p.fibres):
                 ids, w = sp.add(f.surface, f.tri, f.bary, f.positions, meshes)
+                if corner:
+                    mod_fib[0 if p.spec.side == "left" else 1].append(
+                        (len(fib), 1.0 / len(p.fibres), off + (g.h - 1) * g.w + j))
                 fib.append((ids, w, ctrl, cmax, g.h, off + np.arange(g.h) * g.w + j))
     h_max = max([f[4] for f in fib], default=2)
     m_max = max([f[0].shape[0] for f in fib], default=2)
+    mod = _modiolus(mod_fib, fib, sph, rest, h_max)
     F = len(fib)
     fib_ids = np.zeros((F, m_max, 3), np.int64)
     fib_w = np.zeros((F, m_max, 3))
@@ -364,6 +393,7 @@ def build_muscle_system(placed: list[PlacedMuscle], registry, control_index: dic
         sph_cmax=np.array([s["cmax"] for s in sph], float),
         sph_axes=np.stack([s["axes"] for s in sph]) if sph else np.zeros((0, 2, 3)),
         sph_ab=np.stack([s["ab"] for s in sph]) if sph else np.zeros((0, 2)),
+        **mod,
         groups=tuple(groups),
         vol_tri=tri, vol_owner=owner, vol_rest=vrest,
         vol_k=np.array([k for _, k, _ in vol], float),
@@ -379,6 +409,51 @@ def build_muscle_system(placed: list[PlacedMuscle], registry, control_index: dic
         layers=tuple(p.spec.layer for p in with_mesh), h_max=int(h_max), iterations=int(iterations),
     )
     return PendingMuscles(data, sp), sp
+
+
+def _is_corner_muscle(p) -> bool:
+    """A fibred, active, sided muscle whose insertion is placed at a mouth corner."""
+    ins = p.spec.insertion if isinstance(p.spec.insertion, dict) else {}
+    at = ins.get("at", {})
+    off = np.asarray(ins.get("offset", [0.0, 0.0, 0.0]), float)
+    return (p.kind in ("linear", "sheet") and p.spec.active and p.spec.side in ("left", "right")
+            and any("mouth corner" in str(k).lower() for k in at)
+            and float(np.linalg.norm(off)) <= MODIOLUS_MAX_OFFSET_MM)
+
+
+def _modiolus(mod_fib, fib, sph, rest, h_max: int) -> dict:
+    """Build-time modiolus data (:data:`MODIOLUS_GAIN`): per side the corner muscles' fibres
+    (insertion-end sample index, weight), per sphincter ring sample a Gaussian weight of its
+    rest distance to the side's modiolus (mean rest position of those fibres' end particles)."""
+    J = max(1, len(mod_fib[0]), len(mod_fib[1]))
+    end = np.zeros((2, J), np.int64)
+    last = np.zeros((2, J), np.int64)
+    fw = np.zeros((2, J))
+    centre = np.zeros((2, 3))
+    ok = np.zeros(2, bool)
+    for s_ in (0, 1):
+        for k, (fi, w, pid) in enumerate(mod_fib[s_]):
+            end[s_, k] = fi * h_max + fib[fi][4] - 1
+            last[s_, k] = fi
+            fw[s_, k] = w
+        if mod_fib[s_]:
+            centre[s_] = rest[[pid for _, _, pid in mod_fib[s_]]].mean(axis=0)
+            ok[s_] = True
+    if sph and ok.any():
+        n = sph[0]["ids"].shape[1]
+        mod_w = np.zeros((len(sph), 3, n))
+        mod_side = np.zeros((len(sph), 3, n), np.int64)
+        for k, s in enumerate(sph):
+            pos = rest[s["bottom"]]                                                   # (3, n, 3)
+            d = np.stack([np.linalg.norm(pos - centre[i], axis=-1) if ok[i] else np.full(pos.shape[:2], np.inf)
+                          for i in (0, 1)])                                           # (2, 3, n)
+            mod_side[k] = np.argmin(d, axis=0)
+            mod_w[k] = np.exp(-0.5 * (np.min(d, axis=0) / MODIOLUS_SIGMA_MM) ** 2)
+    else:
+        n = sph[0]["ids"].shape[1] if sph else 2
+        mod_w = np.zeros((len(sph), 3, n))
+        mod_side = np.zeros((len(sph), 3, n), np.int64)
+    return dict(mod_w=mod_w, mod_side=mod_side, mod_end=end, mod_last=last, mod_fw=fw)
 
 
 def moved_skull_points(system: MuscleSystem, R, t):
@@ -405,6 +480,10 @@ def sample_targets(system: MuscleSystem, G, activations):
     if system.sph_ids.shape[0] == 0:
         return system.fib_bottom, tg_f
     P = _eval_support(G, system.sph_ids, system.sph_w)                # (K, 3, n, 3)
+    # modiolus: contraction displacement of the corner muscles' insertion ends, per side
+    pull = s.reshape(-1, 3)[system.mod_end] - pts[system.mod_last, -1]   # (2, J, 3)
+    D = jnp.einsum("sj,sjd->sd", system.mod_fw.astype(dt), pull)         # (2, 3)
+    P = P + (MODIOLUS_GAIN * system.mod_w.astype(dt))[..., None] * D[system.mod_side]
     inner, outer = P[:, 0], P[:, 2]
     o = jnp.mean(inner, axis=1, keepdims=True)                        # (K, 1, 3)
     ax = system.sph_axes.astype(dt)
