@@ -158,6 +158,23 @@ def _warp_teeth(template, registration, radius_mm: float = 60.0):
                  for t in (template.upper_teeth, template.lower_teeth))
 
 
+def _compile_and_sample(rig, tris, face_tri, l_tri, opt: SubjectOptions, say, timings: dict):
+    """The fit vertices (face triangles + landmark triangles), the compiled rig and its reduced
+    model over them; records ``compile_s`` and ``response_s`` in ``timings``."""
+    fit_ids = np.unique(np.concatenate([tris[face_tri].ravel(), tris[np.asarray(l_tri)].ravel()]))
+    t = time.perf_counter()
+    say("compiling the rig")
+    forward = ForwardModel(rig, chunk=opt.chunk)
+    forward(np.zeros(forward.n_controls), np.zeros(3))
+    timings["compile_s"] = time.perf_counter() - t
+    t = time.perf_counter()
+    say(f"sampling the reduced model ({forward.n_controls * opt.levels + 5 * opt.pitch_knots} syntheses)")
+    response = build_response_model(forward, fit_ids, levels=opt.levels, pitch_knots=opt.pitch_knots,
+                                    controls=opt.controls)
+    timings["response_s"] = time.perf_counter() - t
+    return fit_ids, forward, response
+
+
 def prepare_subject(
     neutral,
     neutral_landmarks=None,
@@ -234,17 +251,7 @@ def prepare_subject(
     lp = reg.landmark_points
     l_tri = np.asarray(lp.tri, np.int64)
     l_bary = np.asarray(lp.bary, np.float64)
-    fit_ids = np.unique(np.concatenate([tris[face_tri].ravel(), tris[l_tri].ravel()]))
-    t = time.perf_counter()
-    say("compiling the rig")
-    forward = ForwardModel(rig, chunk=opt.chunk)
-    forward(np.zeros(forward.n_controls), np.zeros(3))
-    timings["compile_s"] = time.perf_counter() - t
-    t = time.perf_counter()
-    say(f"sampling the reduced model ({forward.n_controls * opt.levels + 5 * opt.pitch_knots} syntheses)")
-    response = build_response_model(forward, fit_ids, levels=opt.levels, pitch_knots=opt.pitch_knots,
-                                     controls=opt.controls)
-    timings["response_s"] = time.perf_counter() - t
+    fit_ids, forward, response = _compile_and_sample(rig, tris, face_tri, l_tri, opt, say, timings)
     face_index = SurfaceIndex(reg.vertices, tris, face_tri)
     return Subject(
         neutral=neutral, registration=reg, rig=rig, forward=forward, response=response, fit_ids=fit_ids,
@@ -304,17 +311,7 @@ def subject_from_rig(
         has_data=np.ones(V, bool), coarse=mesh, scan_landmarks=Landmarks(common, np.stack([nl[n] for n in common])),
         labels=common,
     )
-    fit_ids = np.unique(np.concatenate([tris[face_tri].ravel(), tris[l_tri].ravel()]))
-    t = time.perf_counter()
-    say("compiling the rig")
-    forward = ForwardModel(rig, chunk=opt.chunk)
-    forward(np.zeros(forward.n_controls), np.zeros(3))
-    timings["compile_s"] = time.perf_counter() - t
-    t = time.perf_counter()
-    say("sampling the reduced model")
-    response = build_response_model(forward, fit_ids, levels=opt.levels, pitch_knots=opt.pitch_knots,
-                                     controls=opt.controls)
-    timings["response_s"] = time.perf_counter() - t
+    fit_ids, forward, response = _compile_and_sample(rig, tris, face_tri, l_tri, opt, say, timings)
     v, tr, _ = neutral.mesh_arrays()
     return Subject(
         neutral=neutral, registration=reg, rig=rig, forward=forward, response=response, fit_ids=fit_ids,
