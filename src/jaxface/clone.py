@@ -41,15 +41,14 @@ Deviations from the thesis, all documented in the result:
 * the global head motion and the teeth/tongue affine transforms (thesis's last step) are not
   cloned: only surface morph targets.
 
-Fixed-length ray casting uses a local segment/triangle intersection (candidate triangles from
-a k-d tree of triangle centroids along the segment, then Möller-Trumbore), which is several
-hundred times faster than an unbounded ray cast for this purpose.
+Fixed-length ray casting (:func:`cast_segments`) goes through
+:meth:`jaxface.mesh.TriMesh.ray_cast` bounded to the segment (r-tree candidates, exact
+Möller-Trumbore), which is much faster than an unbounded ray cast for this purpose.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import itertools
 import time
 from typing import Mapping, Sequence
 
@@ -158,103 +157,33 @@ def eye_nose_separation(landmarks) -> float:
 # ------------------------------------------------------------------------------------------
 # fixed-length ray (segment) casting
 # ------------------------------------------------------------------------------------------
-class _TriangleIndex:
-    """k-d trees over triangle centroids of a fixed mesh, one per triangle-size class (so a
-    few large triangles do not inflate the search radius of the many small ones)."""
-
-    def __init__(self, vertices: np.ndarray, triangles: np.ndarray):
-        self.v = np.asarray(vertices, dtype=np.float64)
-        self.t = np.asarray(triangles, dtype=np.int64)
-        corners = self.v[self.t]
-        centroids = corners.mean(axis=1)
-        radius = np.linalg.norm(corners - centroids[:, None], axis=2).max(axis=1)
-        c = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-        n = np.linalg.norm(c, axis=1, keepdims=True)
-        self.normals = np.divide(c, n, out=np.zeros_like(c), where=n > 0)
-        self.buckets = []  # (tree, triangle ids, max radius)
-        if self.t.shape[0] == 0:
-            return
-        base = max(float(np.median(radius)), 1e-12)
-        cls = np.maximum(np.ceil(np.log2(np.maximum(radius, 1e-300) / base)), 0).astype(int)
-        for k in np.unique(cls):
-            ids = np.flatnonzero(cls == k)
-            self.buckets.append((cKDTree(centroids[ids]), ids, float(radius[ids].max())))
-
-
-def _candidates(index: _TriangleIndex, o, d, lo: float, hi: float):
-    """(ray, tri) pairs whose triangle may meet the segments o + t d, t in [lo, hi] (sorted,
-    unique)."""
-    r = o.shape[0]
-    span = hi - lo
-    keys = []
-    nt = index.t.shape[0]
-    for tree, ids, rb in index.buckets:
-        step = max(rb, span / 64.0, 1e-12)
-        m = int(np.ceil(span / step)) + 1
-        ts = np.linspace(lo, hi, m)
-        samples = (o[:, None, :] + ts[None, :, None] * d[:, None, :]).reshape(-1, 3)
-        rad = 0.5 * span / max(m - 1, 1) + rb + 1e-9
-        lists = tree.query_ball_point(samples, rad, return_sorted=False)
-        counts = np.fromiter(map(len, lists), dtype=np.int64, count=len(lists))
-        tot = int(counts.sum())
-        if tot == 0:
-            continue
-        local = np.fromiter(itertools.chain.from_iterable(lists), dtype=np.int64, count=tot)
-        ray = np.repeat(np.arange(r * m, dtype=np.int64) // m, counts)
-        keys.append(ray * nt + ids[local])
-    if not keys:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    k = np.concatenate(keys)
-    k.sort()
-    k = k[np.concatenate([[True], k[1:] != k[:-1]])]
-    return k // nt, k % nt
-
-
-def _intersect(index: _TriangleIndex, o, d, ray, tri, lo, hi, normal_dot_min):
-    """Möller-Trumbore on (ray, tri) pairs; returns the valid (ray, tri, u, v, t)."""
-    v0 = index.v[index.t[tri, 0]]
-    e1 = index.v[index.t[tri, 1]] - v0
-    e2 = index.v[index.t[tri, 2]] - v0
-    dr = d[ray]
-    pvec = np.cross(dr, e2)
-    det = np.einsum("ij,ij->i", e1, pvec)
-    scale = np.einsum("ij,ij->i", e1, e1) * np.einsum("ij,ij->i", e2, e2)
-    ok = np.abs(det) > 1e-12 * np.sqrt(scale + 1e-300)
-    inv = np.divide(1.0, det, out=np.zeros_like(det), where=ok)
-    tvec = o[ray] - v0
-    u = np.einsum("ij,ij->i", tvec, pvec) * inv
-    qvec = np.cross(tvec, e1)
-    v = np.einsum("ij,ij->i", dr, qvec) * inv
-    t = np.einsum("ij,ij->i", e2, qvec) * inv
-    eps = 1e-9
-    ok &= (u >= -eps) & (v >= -eps) & (u + v <= 1 + eps) & (t >= lo - 1e-9) & (t <= hi + 1e-9)
-    if normal_dot_min is not None:
-        ok &= np.einsum("ij,ij->i", index.normals[tri], dr) >= normal_dot_min
-    return ray[ok], tri[ok], u[ok], v[ok], t[ok]
-
-
 def cast_segments(
     origins,
     directions,
     length: float,
-    vertices,
-    triangles,
+    vertices=None,
+    triangles=None,
     *,
     two_sided: bool = True,
     normal_dot_min: float | None = 0.0,
-    index: _TriangleIndex | None = None,
+    mesh=None,
 ):
     """Intersect fixed-length rays with a triangle mesh; keep the nearest hit of each.
 
-    The search grows outwards from the origins (|t| up to L/16, L/4, L), so rays that hit
-    close by (the usual case once two surfaces are roughly aligned) cost little.
+    A thin layer over :meth:`jaxface.mesh.TriMesh.ray_cast` (r-tree candidates, exact
+    Möller-Trumbore): each segment is cast as a ray from its far end, every hit on it is
+    kept, hits on triangles facing the wrong way are dropped, and the hit nearest to the
+    origin (smallest ``|t|``) wins. The rays are first cast over ``L / 16`` (short segments
+    have few candidate triangles); only those that miss there are cast over ``L``.
 
     Arguments:
         origins: ``(R, 3)`` ray origins, mm.
         directions: ``(R, 3)`` ray directions (normalised here; zero rows never hit).
         length: ray length ``L``, mm; with ``two_sided`` the segment is
             ``[o - L d, o + L d]``, otherwise ``[o, o + L d]``.
-        vertices, triangles: the mesh, ``(V, 3)`` mm and ``(F, 3)`` int.
+        vertices, triangles: the mesh, ``(V, 3)`` mm and ``(F, 3)`` int; or
+        mesh: the same as a :class:`~jaxface.mesh.TriMesh` (its r-tree is built once and
+            reused across calls).
         normal_dot_min: ignore hits on triangles whose unit normal ``n_f`` has
             ``dot(n_f, d) < normal_dot_min`` (``None``: keep all).
 
@@ -262,53 +191,55 @@ def cast_segments(
         ``(hit (R,) bool, tri (R,) int64, bary (R, 3), t (R,) signed distance along d in mm)``;
         rays that missed have ``tri = -1``, ``bary = 0``, ``t = inf``.
     """
+    from .mesh import TriMesh, closest_point_barycentric
+
+    if mesh is None:
+        if vertices is None or triangles is None:
+            raise MeshError("cast_segments needs the target mesh: pass vertices and triangles, "
+                            "or mesh=TriMesh.", problem="bad_arguments")
+        mesh = TriMesh(np.asarray(vertices, dtype=np.float64), np.asarray(triangles), validate=False)
     o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
     d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
     r = o.shape[0]
     nrm = np.linalg.norm(d, axis=1, keepdims=True)
     d = np.divide(d, nrm, out=np.zeros_like(d), where=nrm > 0)
-    idx = index if index is not None else _TriangleIndex(vertices, triangles)
     hit = np.zeros(r, bool)
     tri_out = np.full(r, -1, np.int64)
     bary_out = np.zeros((r, 3))
     t_out = np.full(r, np.inf)
-    if r == 0 or idx.t.shape[0] == 0:
+    rays = np.flatnonzero((nrm[:, 0] > 0) & np.isfinite(o).all(axis=1) & np.isfinite(nrm[:, 0]))
+    if rays.size == 0 or mesh.n_triangles == 0:
         return hit, tri_out, bary_out, t_out
     L = float(length)
-    prev = 0.0
-    for frac in (1.0 / 16.0, 0.25, 1.0):
-        todo = np.flatnonzero(~hit & (nrm[:, 0] > 0))
-        if todo.size == 0:
+    # near hits first (the usual case once two surfaces are roughly aligned): short segments
+    # give small r-tree boxes with few candidates; only the rays that missed search further
+    for frac in (1.0 / 16.0, 1.0):
+        if rays.size == 0:
             break
-        cur = frac * L
-        found = []
-        # the shell prev < |t| <= cur, searched as one or two intervals
-        intervals = [(-cur, cur)] if prev == 0.0 else [(prev, cur)]
-        if prev > 0.0 and two_sided:
-            intervals.append((-cur, -prev))
-        if not two_sided:
-            intervals = [(max(a, 0.0), b) for a, b in intervals if b > 0.0]
-        for lo, hi in intervals:
-            ray, tri = _candidates(idx, o[todo], d[todo], lo, hi)
-            if ray.size:
-                found.append(_intersect(idx, o[todo], d[todo], ray, tri, lo, hi, normal_dot_min))
-        prev = cur
-        if not found:
-            continue
-        ray, tri, u, v, t = (np.concatenate(x) for x in zip(*found))
-        if not ray.size:
-            continue
-        order = np.lexsort((np.abs(t), ray))
-        ray, tri, u, v, t = ray[order], tri[order], u[order], v[order], t[order]
-        first = np.unique(ray, return_index=True)[1]
-        ray, tri, u, v, t = ray[first], tri[first], u[first], v[first], t[first]
-        b = np.clip(np.stack([1.0 - u - v, u, v], axis=1), 0.0, None)
-        b /= b.sum(axis=1, keepdims=True)
-        g = todo[ray]
-        hit[g] = True
-        tri_out[g] = tri
-        bary_out[g] = b
-        t_out[g] = t
+        Lk = frac * L
+        back = Lk if two_sided else 0.0
+        h = mesh.ray_cast(o[rays] - back * d[rays], d[rays], all_hits=True, max_distance=Lk + back)
+        ray = rays[np.asarray(h.ray_index)]
+        tri = np.asarray(h.points.tri, dtype=np.int64)
+        # barycentrics in float64 from the (float64) hit locations: SurfacePoints holds JAX
+        # arrays, float32 unless x64 is enabled
+        corners = mesh.vertices[mesh.triangles[tri]]
+        bary = closest_point_barycentric(np.asarray(h.locations), corners[:, 0], corners[:, 1],
+                                         corners[:, 2])
+        t = np.asarray(h.distances) - back
+        if normal_dot_min is not None:
+            ok = np.einsum("ij,ij->i", mesh.face_normals[tri], d[ray]) >= normal_dot_min
+            ray, tri, bary, t = ray[ok], tri[ok], bary[ok], t[ok]
+        if ray.size:
+            order = np.lexsort((np.abs(t), ray))
+            ray, tri, bary, t = ray[order], tri[order], bary[order], t[order]
+            first = np.unique(ray, return_index=True)[1]
+            ray, tri, bary, t = ray[first], tri[first], bary[first], t[first]
+            hit[ray] = True
+            tri_out[ray] = tri
+            bary_out[ray] = bary
+            t_out[ray] = t
+        rays = rays[~hit[rays]]
     return hit, tri_out, bary_out, t_out
 
 
@@ -349,11 +280,12 @@ def map_onto_surface(points, normals, length: float, vertices, triangles) -> Sur
     from .mesh import TriMesh
 
     p = np.asarray(points, dtype=np.float64)
-    hit, tri, bary, t = cast_segments(p, normals, length, vertices, triangles)
+    surface = TriMesh(np.asarray(vertices, dtype=np.float64), np.asarray(triangles), validate=False)
+    hit, tri, bary, t = cast_segments(p, normals, length, mesh=surface)
     miss = np.flatnonzero(~hit)
     offset = np.where(hit, t, 0.0)
     if miss.size:
-        sp, dist = TriMesh(np.asarray(vertices), np.asarray(triangles), validate=False).closest_points(p[miss])
+        sp, dist = surface.closest_points(p[miss])
         tri[miss] = np.asarray(sp.tri, dtype=np.int64)
         bary[miss] = np.asarray(sp.bary, dtype=np.float64)
         offset[miss] = dist
@@ -504,16 +436,13 @@ def fit_source_to_target(
         Q = np.concatenate([Q_lm, q])
         return fit_numpy(P, Q, kernel, reg, merge_duplicates=True), P, Q
 
-    tindex = _TriangleIndex(tgt.vertices, tgt.triangles)
     history = []
 
     def errors(G):
         D = G.apply_np(S0)
         n = _vertex_normals(D, src.triangles)
         cand = np.flatnonzero(mov & ~near_lm)
-        hit, tri, bary, t = cast_segments(
-            D[cand], n[cand], L, tgt.vertices, tgt.triangles, index=tindex
-        )
+        hit, tri, bary, t = cast_segments(D[cand], n[cand], L, mesh=tgt)
         err = np.abs(t[hit])
         q = np.einsum("kj,kjd->kd", bary[hit], tgt.vertices[tgt.triangles[tri[hit]]])
         return D, cand[hit], err, q
@@ -719,21 +648,30 @@ def apply_clone(fit: FitResult, mapping: SurfaceMap, source_triangles, target_ve
     """
     D = fit.deformed
     T = deltas.shape[0]
-    tt, vv = np.nonzero(moving)
+    tri_v = np.asarray(source_triangles)[mapping.tri]  # (Vt, 3)
+    # only the source vertices the target vertices are mapped onto matter
+    used = np.zeros(D.shape[0], bool)
+    used[tri_v.ravel()] = True
+    tt, vv = np.nonzero(np.asarray(moving, bool) & used[None])
     disp = np.zeros((T,) + D.shape)
     if transfer in ("morph", "rough"):
         G = fit.morph if transfer == "morph" else fit.rough_morph
-        base = D if transfer == "morph" else G.apply_np(fit.source_neutral)
         pts = fit.source_neutral[vv] + deltas[tt, vv]
         moved = G.apply_np(pts) if pts.size else np.zeros((0, 3))
-        disp[tt, vv] = moved - base[vv]
+        if transfer == "morph":
+            base = D[vv]
+        else:
+            base = np.zeros_like(D)
+            u = np.flatnonzero(used)
+            base[u] = G.apply_np(fit.source_neutral[u])
+            base = base[vv]
+        disp[tt, vv] = moved - base
     elif transfer == "affine":
         M, _ = fit.morph.affine_part()
         disp[tt, vv] = deltas[tt, vv] @ np.asarray(M, dtype=np.float64).T
     else:
         raise MeshError(f"unknown transfer {transfer!r}; use 'morph', 'rough' or 'affine'.",
                         problem="bad_arguments")
-    tri_v = np.asarray(source_triangles)[mapping.tri]  # (Vt, 3)
     tv = np.asarray(target_vertices, dtype=np.float64)
     out = tv[None] + np.einsum("vk,tvkd->tvd", mapping.bary, disp[:, tri_v])
     if mode == "thesis":

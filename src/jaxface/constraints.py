@@ -53,6 +53,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .errors import MeshError
+from ._arrays import to_jax
 
 __all__ = [
     "Constraints",
@@ -303,7 +304,7 @@ class Constraints(eqx.Module):
             v = getattr(g, f)
             if v is None:
                 continue
-            changes[f] = jnp.asarray(np.asarray(v)[src]) if slot.size else v
+            changes[f] = to_jax(np.asarray(v)[src]) if slot.size else v
         # padding rows -> dummy particles, unique inside each colour
         pad = perm < 0
         rank = (np.cumsum(pad.reshape(K, S), axis=1) - 1).reshape(-1)
@@ -418,13 +419,13 @@ def _base_fields(idx, stiffness, compliance, name):
     if compliance is not None:
         a = _as_float(compliance, (m,), f"{name} compliance")
         _check_compliance(a, name)
-        a = jnp.asarray(a)
+        a = to_jax(a)
     else:
         a = None
     ident = jnp.arange(m, dtype=jnp.int32)
     return dict(
         idx=jnp.asarray(idx, jnp.int32),
-        stiffness=jnp.asarray(k),
+        stiffness=to_jax(k),
         compliance=a,
         perm=ident,
         inv_perm=ident,
@@ -469,7 +470,7 @@ class DistanceConstraints(Constraints):
             x = _as_float(x_rest, name="x_rest")
             rest = np.linalg.norm(x[idx[:, 0]] - x[idx[:, 1]], axis=1)
         rest = _as_float(rest, (idx.shape[0],), "distance rest")
-        return cls(rest=jnp.asarray(rest), **_base_fields(idx, stiffness, compliance, "distance"))
+        return cls(rest=to_jax(rest), **_base_fields(idx, stiffness, compliance, "distance"))
 
     def terms(self, P):
         d = P[0] - P[1]
@@ -533,7 +534,7 @@ class BendingConstraints(Constraints):
             x = _as_float(x_rest, name="x_rest")
             rest = _np_dihedral(x, idx)
         rest = _as_float(rest, (idx.shape[0],), "bending rest")
-        return cls(rest=jnp.asarray(rest), **_base_fields(idx, stiffness, compliance, "bending"))
+        return cls(rest=to_jax(rest), **_base_fields(idx, stiffness, compliance, "bending"))
 
     def terms(self, P):
         a, b, c, d = P
@@ -593,7 +594,7 @@ class AreaConstraints(Constraints):
             n = np.cross(x[idx[:, 1]] - x[idx[:, 0]], x[idx[:, 2]] - x[idx[:, 0]])
             rest = 0.5 * np.linalg.norm(n, axis=1)
         rest = _as_float(rest, (idx.shape[0],), "area rest")
-        return cls(rest=jnp.asarray(rest), **_base_fields(idx, stiffness, compliance, "area"))
+        return cls(rest=to_jax(rest), **_base_fields(idx, stiffness, compliance, "area"))
 
     def terms(self, P):
         a, b, c = P
@@ -676,18 +677,18 @@ class VolumeConstraint(Constraints):
         if compliance is not None:
             a = _as_float(compliance, (1,), "volume compliance")
             _check_compliance(a, "volume")
-            a = jnp.asarray(a)
+            a = to_jax(a)
         F = tri.shape[0]
         ident = jnp.arange(F, dtype=jnp.int32)
         return cls(
             idx=jnp.asarray(tri, jnp.int32),
-            stiffness=jnp.asarray(k),
+            stiffness=to_jax(k),
             compliance=a,
             perm=ident,
             inv_perm=ident,
             layout=(1, F),
-            rest=jnp.asarray(rest),
-            origin=jnp.asarray(origin),
+            rest=to_jax(rest),
+            origin=to_jax(origin),
         )
 
     @property
@@ -793,7 +794,7 @@ class AnchorConstraints(Constraints):
                 f"anchor targets must be ({idx.shape[0]}, 3) mm, got {t.shape}.",
                 problem="shape",
             )
-        return cls(target=jnp.asarray(t), **_base_fields(idx, stiffness, compliance, "anchor"))
+        return cls(target=to_jax(t), **_base_fields(idx, stiffness, compliance, "anchor"))
 
     def lambda_shape(self):
         K, S = self.layout
@@ -870,8 +871,8 @@ class HalfSpaceConstraints(Constraints):
             )
         d = _as_float(offsets, (m,), "half-space offsets")
         return cls(
-            normal=jnp.asarray(n / nn[:, None]),
-            offset=jnp.asarray(d),
+            normal=to_jax(n / nn[:, None]),
+            offset=to_jax(d),
             **_base_fields(idx, stiffness, compliance, "half-space"),
         )
 
@@ -922,9 +923,9 @@ class HullConstraints(Constraints):
             raise MeshError("hull has zero-length plane normals.", problem="zero_normal")
         c = _as_float(clearance, (m,), "hull clearance")
         return cls(
-            normals=jnp.asarray(n / nn[:, None]),
-            offsets=jnp.asarray(d),
-            clearance=jnp.asarray(c),
+            normals=to_jax(n / nn[:, None]),
+            offsets=to_jax(d),
+            clearance=to_jax(c),
             **_base_fields(idx, stiffness, compliance, "hull"),
         )
 

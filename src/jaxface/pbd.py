@@ -122,6 +122,7 @@ from .constraints import (
     safe_norm,
 )
 from .errors import MeshError
+from ._arrays import to_jax
 
 __all__ = [
     "DEFAULT_DT",
@@ -458,8 +459,8 @@ def build_system(constraints, inv_mass) -> System:
         groups.append(g)
     return System(
         groups=tuple(groups),
-        inv_mass=jnp.asarray(w),
-        counts=jnp.asarray(counts.astype(np.float64)),
+        inv_mass=to_jax(w),
+        counts=to_jax(counts.astype(np.float64)),
         names=tuple(names),
         n_dummy=max([g.n_dummy for g in groups], default=0),
     )

@@ -216,18 +216,24 @@ class Morph(eqx.Module):
         A = np.asarray(self.affine, np.float64)
         c2 = np.asarray(self.radii2, np.float64)
         n = max(cn.shape[0], 1)
-        chunk = int(max(1, min(int(chunk_size), max(256, _MAX_BLOCK_ELEMENTS // n))))
+        # blocks of about 1 M kernel values stay in cache (2x faster than 4x larger blocks)
+        chunk = int(max(1, min(int(chunk_size), max(256, (_MAX_BLOCK_ELEMENTS // 2) // n))))
         out = np.empty_like(x)
         smooth = self.kernel == "multiquadric"  # r_i > 0: no precision loss near r = 0
         cc = np.einsum("ij,ij->i", cn, cn)
+        cnT = np.ascontiguousarray(cn.T)
         for s in range(0, x.shape[0], chunk):
             xn = (x[s : s + chunk] - shift) / scale
-            if smooth:
-                d2 = np.einsum("ij,ij->i", xn, xn)[:, None] + cc[None, :] - 2.0 * (xn @ cn.T)
-                np.maximum(d2, 0.0, out=d2)
+            if smooth:  # sqrt(max(|x|^2 + |c|^2 - 2 x.c, 0) + r_i^2), in place
+                kx = xn @ cnT
+                kx *= -2.0
+                kx += np.einsum("ij,ij->i", xn, xn)[:, None]
+                kx += cc[None, :]
+                np.maximum(kx, 0.0, out=kx)
+                kx += c2[None, :]
+                np.sqrt(kx, out=kx)
             else:
-                d2 = _sqdist_np(xn, cn)
-            kx = _kernel_np(self.kernel, d2, c2)
+                kx = _kernel_np(self.kernel, _sqdist_np(xn, cn), c2)
             out[s : s + chunk] = kx @ W + A[0] + xn @ A[1:]
         return out.reshape(*lead, 3)
 

@@ -84,101 +84,52 @@ class SegmentHits:
         self.hit, self.t, self.tri, self.bary, self.locations = hit, t, tri, bary, locations
 
 
-def _tree(mesh: TriMesh):
-    """An r-tree over the triangle bounding boxes (cached on the mesh's trimesh object)."""
-    tm = mesh.to_trimesh()
-    tree = getattr(tm, "_jaxface_tri_tree", None)
-    if tree is None:
-        tree = tm.triangles_tree
-        try:
-            tm._jaxface_tri_tree = tree
-        except AttributeError:  # pragma: no cover
-            pass
-    return tree
-
-
-def segment_cast(mesh: TriMesh, origins, directions, max_dist, *, min_dist: float = 0.0,
-                 piece: float | None = None) -> SegmentHits:
+def segment_cast(mesh: TriMesh, origins, directions, max_dist, *, min_dist: float = 0.0) -> SegmentHits:
     """Cast bounded rays (segments) against a mesh and keep the first hit of each.
 
-    Much faster than unbounded ray casting for short rays: each segment is cut into pieces
-    whose bounding boxes query an r-tree of the triangles (vectorised ``intersection_v``),
-    then the candidates are intersected exactly (Moller-Trumbore, vectorised). The thesis
-    uses a spatial hash for the same purpose (sec. 3.3).
+    :meth:`jaxface.mesh.TriMesh.ray_cast` limited to each segment (r-tree candidates along
+    the segment, exact Moller-Trumbore); much faster than unbounded rays when the segments
+    are short. The thesis uses a spatial hash for the same purpose (sec. 3.3).
 
     Args:
         mesh: the target mesh.
         origins: ``(R, 3)`` mm.
-        directions: ``(R, 3)`` (normalised here).
+        directions: ``(R, 3)`` (normalised here; zero or non-finite rows never hit).
         max_dist: ``(R,)`` or scalar segment length, mm.
         min_dist: hits at ``t <= min_dist`` are ignored (mm).
-        piece: piece length for the r-tree queries, mm (default: twice the mean edge length).
 
     Returns:
         :class:`SegmentHits`.
     """
+    from ..mesh import closest_point_barycentric
+
     o = np.atleast_2d(np.asarray(origins, dtype=np.float64))
     d = np.broadcast_to(np.asarray(directions, dtype=np.float64), o.shape)
-    d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-300)
+    nrm = np.linalg.norm(d, axis=1)
     r = o.shape[0]
     L = np.broadcast_to(np.asarray(max_dist, dtype=np.float64), (r,))
-    if piece is None:
-        piece = 2.0 * float(np.mean(mesh.edge_lengths)) if mesh.n_triangles else 1.0
-    npc = np.maximum(np.ceil(L / piece).astype(np.int64), 1)
-    ray_of = np.repeat(np.arange(r), npc)
-    k = np.arange(ray_of.size) - np.repeat(np.cumsum(npc) - npc, npc)
-    plen = (L / npc)[ray_of]
-    a = o[ray_of] + d[ray_of] * (k * plen)[:, None]
-    b = a + d[ray_of] * plen[:, None]
-    eps = 1e-6 * (1.0 + np.abs(o).max(initial=0.0))
-    mins = np.minimum(a, b) - eps
-    maxs = np.maximum(a, b) + eps
     hit = np.zeros(r, dtype=bool)
     tbest = np.full(r, np.inf)
     tri = np.zeros(r, dtype=np.int64)
     bary = np.zeros((r, 3))
-    if r == 0 or mesh.n_triangles == 0:
-        return SegmentHits(hit, tbest, tri, bary, o.copy())
-    # pieces whose boxes miss the mesh's bounding box need no r-tree query
-    lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
-    near = np.all((maxs >= lo) & (mins <= hi), axis=1)
-    if not near.any():
-        return SegmentHits(hit, tbest, tri, bary, o.copy())
-    ray_of, mins, maxs = ray_of[near], mins[near], maxs[near]
-    ids, counts = _tree(mesh).intersection_v(mins, maxs)
-    pr = np.repeat(ray_of, np.asarray(counts, dtype=np.int64))
-    pt = np.asarray(ids, dtype=np.int64)
-    if pr.size == 0:
-        return SegmentHits(hit, tbest, tri, bary, o.copy())
-    key = np.unique(pr * mesh.n_triangles + pt)
-    pr, pt = key // mesh.n_triangles, key % mesh.n_triangles
-    V = mesh.vertices[mesh.triangles[pt]]
-    e1 = V[:, 1] - V[:, 0]
-    e2 = V[:, 2] - V[:, 0]
-    dd = d[pr]
-    pv = np.cross(dd, e2)
-    det = np.einsum("ij,ij->i", e1, pv)
-    ok = np.abs(det) > 1e-14 * (np.einsum("ij,ij->i", e1, e1) + 1e-300)
-    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
-    tv = o[pr] - V[:, 0]
-    u = np.einsum("ij,ij->i", tv, pv) * inv
-    qv = np.cross(tv, e1)
-    v = np.einsum("ij,ij->i", dd, qv) * inv
-    t = np.einsum("ij,ij->i", e2, qv) * inv
-    tol = 1e-9
-    good = ok & (u >= -tol) & (v >= -tol) & (u + v <= 1 + tol) & (t > min_dist) & (t <= L[pr])
-    pr, pt, u, v, t = pr[good], pt[good], u[good], v[good], t[good]
-    if pr.size:
-        order = np.lexsort((t, pr))
-        pr, pt, u, v, t = pr[order], pt[order], u[order], v[order], t[order]
-        first = np.unique(pr, return_index=True)[1]
-        pr, pt, u, v, t = pr[first], pt[first], u[first], v[first], t[first]
-        hit[pr] = True
-        tbest[pr] = t
-        tri[pr] = pt
-        bw = np.stack([1 - u - v, u, v], axis=1)
-        bary[pr] = np.clip(bw, 0.0, 1.0) / np.clip(bw, 0.0, 1.0).sum(axis=1, keepdims=True)
-    loc = o + d * np.where(np.isfinite(tbest), tbest, 0.0)[:, None]
+    rays = np.flatnonzero(np.isfinite(nrm) & (nrm > 1e-300) & np.isfinite(o).all(axis=1)
+                          & (L > min_dist))
+    if rays.size and mesh.n_triangles:
+        h = mesh.ray_cast(o[rays], d[rays] / nrm[rays, None], min_distance=max(min_dist, 0.0),
+                          max_distance=float(L[rays].max()))
+        rr = rays[np.asarray(h.ray_index)]
+        t = np.asarray(h.distances)
+        keep = (t <= L[rr]) & (t > min_dist)
+        rr, t, loc = rr[keep], t[keep], np.asarray(h.locations)[keep]
+        tt = np.asarray(h.points.tri, dtype=np.int64)[keep]
+        c = mesh.vertices[mesh.triangles[tt]]
+        hit[rr] = True
+        tbest[rr] = t
+        tri[rr] = tt
+        # float64 barycentrics from the float64 hit points (SurfacePoints holds JAX arrays)
+        bary[rr] = closest_point_barycentric(loc, c[:, 0], c[:, 1], c[:, 2])
+    dn = np.divide(d, nrm[:, None], out=np.zeros_like(d), where=nrm[:, None] > 1e-300)
+    loc = o + dn * np.where(np.isfinite(tbest), tbest, 0.0)[:, None]
     return SegmentHits(hit, tbest, tri, bary, loc)
 
 

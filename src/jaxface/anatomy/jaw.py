@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .frame import FaceFrame, face_frame
+from .._arrays import to_jax
 
 __all__ = [
     "JawPose",
@@ -160,8 +161,8 @@ class JawModel(eqx.Module):
         yaw = yaw / np.linalg.norm(yaw)
         prot = frame.landmark("Chin middle") - frame.spine_top
         prot = prot / np.linalg.norm(prot)
-        return JawModel(jnp.asarray(pivot), jnp.asarray(pitch), jnp.asarray(yaw),
-                        jnp.asarray(prot), **{k: tuple(v) if isinstance(v, (list, tuple)) else v
+        return JawModel(to_jax(pivot), to_jax(pitch), to_jax(yaw),
+                        to_jax(prot), **{k: tuple(v) if isinstance(v, (list, tuple)) else v
                                               for k, v in limits.items()})
 
     @property

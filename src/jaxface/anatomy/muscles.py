@@ -45,6 +45,7 @@ from .. import pbd
 from .muscle_geometry import jax_sample_polyline
 from .muscle_map import PlacedMuscle
 from .solver import fused_group, sweep
+from .._arrays import to_jax
 
 __all__ = [
     "STIFFNESS",
@@ -272,11 +273,11 @@ class PendingMuscles:
         skull = np.stack(self.sp.skull_rest) if self.sp.skull_rest else np.zeros((0, 3))
         static = {k: d.pop(k) for k in ("offsets", "names", "layers", "h_max", "iterations")}
         groups = d.pop("groups")
-        arrs = {k: jnp.asarray(v) for k, v in d.items()}
+        arrs = {k: to_jax(v) for k, v in d.items()}
         onm = np.array(self.sp.skull_on_mandible, bool)
         jw = onm.astype(np.float64) if jaw_weight is None else np.asarray(jaw_weight(skull, onm), np.float64)
-        return MuscleSystem(skull_rest=jnp.asarray(skull),
-                            skull_on_mandible=jnp.asarray(onm), skull_jaw_weight=jnp.asarray(jw),
+        return MuscleSystem(skull_rest=to_jax(skull),
+                            skull_on_mandible=to_jax(onm), skull_jaw_weight=to_jax(jw),
                             groups=groups, **arrs, **static)
 
 

@@ -47,6 +47,7 @@ from ..mesh import TriMesh
 from .frame import FaceFrame
 from .geometry import segment_cast, smooth_normals
 from .solver import fused_group
+from .._arrays import to_jax
 
 __all__ = [
     "SKIN_STIFFNESS",
@@ -409,21 +410,21 @@ def build_skin_system(skin: TriMesh, frame: FaceFrame, binding: Binding, support
     lo_g, lo_planes = _hull_group(teeth[1], x, 30.0 * frame.mean_scale, V, inv_mass, 0.3)
     acnt = np.ones(V)
     return SkinSystem(
-        rest=jnp.asarray(x), bind_ids=jnp.asarray(support_ids), bind_w=jnp.asarray(support_w),
-        bind_offset=jnp.asarray(x - binding.point),
-        fp_rows=jnp.asarray(F.row), fp_cols=jnp.asarray(F.col), fp_vals=jnp.asarray(F.data),
-        influence=jnp.asarray(infl), inv_mass=jnp.asarray(inv_mass), anchor_k=jnp.asarray(anchor_k),
-        anchor_ids=jnp.arange(V), anchor_inv_count=jnp.asarray(acnt),
-        lid_ids=jnp.asarray(np.concatenate(lid_ids) if lid_ids else np.zeros(0, np.int64)),
-        lid_fall=jnp.asarray(np.concatenate(lid_fall) if lid_fall else np.zeros(0)),
-        lid_upper=jnp.asarray(np.concatenate(lid_upper) if lid_upper else np.zeros(0, bool)),
-        lid_side=jnp.asarray(np.concatenate(lid_side) if lid_side else np.zeros(0, np.int64)),
-        lid_pivot=jnp.asarray(np.stack(piv) if piv else np.zeros((0, 3))),
-        lid_axis=jnp.asarray(np.stack(axs) if axs else np.zeros((0, 3))),
-        lid_angles=jnp.asarray(np.stack(angs) if angs else np.zeros((0, 1, 2))),
-        puff_dir=jnp.asarray(puff),
+        rest=to_jax(x), bind_ids=to_jax(support_ids), bind_w=to_jax(support_w),
+        bind_offset=to_jax(x - binding.point),
+        fp_rows=to_jax(F.row), fp_cols=to_jax(F.col), fp_vals=to_jax(F.data),
+        influence=to_jax(infl), inv_mass=to_jax(inv_mass), anchor_k=to_jax(anchor_k),
+        anchor_ids=jnp.arange(V), anchor_inv_count=to_jax(acnt),
+        lid_ids=to_jax(np.concatenate(lid_ids) if lid_ids else np.zeros(0, np.int64)),
+        lid_fall=to_jax(np.concatenate(lid_fall) if lid_fall else np.zeros(0)),
+        lid_upper=to_jax(np.concatenate(lid_upper) if lid_upper else np.zeros(0, bool)),
+        lid_side=to_jax(np.concatenate(lid_side) if lid_side else np.zeros(0, np.int64)),
+        lid_pivot=to_jax(np.stack(piv) if piv else np.zeros((0, 3))),
+        lid_axis=to_jax(np.stack(axs) if axs else np.zeros((0, 3))),
+        lid_angles=to_jax(np.stack(angs) if angs else np.zeros((0, 1, 2))),
+        puff_dir=to_jax(puff),
         groups=tuple(groups), volume=vol, upper_hull=up_g, lower_hull=lo_g,
-        lower_planes=(None if lo_planes is None else (jnp.asarray(lo_planes[0]), jnp.asarray(lo_planes[1]))),
+        lower_planes=(None if lo_planes is None else (to_jax(lo_planes[0]), to_jax(lo_planes[1]))),
         iterations=int(iterations),
     )
 

@@ -30,6 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..constraints import AnchorConstraints, Constraints, HullConstraints, VolumeConstraint
+from .._arrays import to_jax
 
 __all__ = ["FusedGroup", "fused_group", "sweep", "anchor_sweep"]
 
@@ -65,7 +66,7 @@ def fused_group(c: Constraints, n: int, *, omega: float = 1.0, name: str = "") -
     idx = np.asarray(c.idx)
     cnt = np.bincount(idx.ravel(), minlength=n).astype(np.float64)
     inv = np.where(cnt > 0, 1.0 / np.maximum(cnt, 1.0), 0.0)
-    return FusedGroup(c=c, inv_count=jnp.asarray(inv), omega=float(omega), name=name)
+    return FusedGroup(c=c, inv_count=to_jax(inv), omega=float(omega), name=name)
 
 
 def _f(a, dtype):
