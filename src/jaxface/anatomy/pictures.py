@@ -71,9 +71,9 @@ def expression_sheet(path, rig: Rig, expressions, *, views=("front", (30.0, 5.0)
     if title:
         fig.suptitle(title)
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
+    from ..render import save_figure
+
+    path = save_figure(fig, path, dpi=100)
     plt.close(fig)
     return path
 
@@ -160,9 +160,9 @@ def muscle_map_picture(path, rig: Rig, *, px: int = 460) -> Path:
     handles = [Patch(color=c, label=b.replace("_", " ")) for b, c in colors.items()]
     fig.legend(handles=handles, loc="center right", fontsize=7, frameon=False)
     fig.tight_layout(rect=(0, 0, 0.83, 1))
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
+    from ..render import save_figure
+
+    path = save_figure(fig, path, dpi=100)
     plt.close(fig)
     return path
 
@@ -217,8 +217,8 @@ def jaw_diagram(path, rig: Rig, pose=None, *, px: int = 460) -> Path:
         f"{float(pc.protrusion_mm):.1f} mm ({jm.protrusion_limits[0]:g}..{jm.protrusion_limits[1]:g})\n"
         "red: pitch axis through the condyles, green: yaw axis, blue: protrusion", fontsize=8)
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
+    from ..render import save_figure
+
+    path = save_figure(fig, path, dpi=100)
     plt.close(fig)
     return path

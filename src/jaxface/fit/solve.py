@@ -88,6 +88,7 @@ import optimistix as optx
 
 from ..errors import FitError
 from .metrics import SurfaceIndex
+from .._arrays import to_jax
 
 __all__ = [
     "FitOptions",
@@ -207,14 +208,14 @@ def activations_from_z(z):
 def z_from_activations(a, eps: float = 0.0):
     """Inverse of :func:`activations_from_z` on ``z`` in [0, 1] (activations clipped to
     ``[eps, 1 - eps]``)."""
-    a = jnp.clip(jnp.asarray(a), eps, 1.0 - eps)
+    a = jnp.clip(to_jax(a), eps, 1.0 - eps)
     return (2.0 / jnp.pi) * jnp.arcsin(jnp.sqrt(a))
 
 
 def rotation_from_rotvec_deg(w_deg):
     """Rotation matrix ``(3, 3)`` of a rotation vector ``(3,)`` in degrees (Rodrigues;
     NaN-safe at 0 in value and gradient: a Taylor series below 1e-6 rad)."""
-    w = jnp.asarray(w_deg) * (jnp.pi / 180.0)
+    w = to_jax(w_deg) * (jnp.pi / 180.0)
     th2 = jnp.sum(w * w)
     small = th2 < 1e-12
     th2s = jnp.where(small, 1.0, th2)
@@ -234,7 +235,7 @@ def apply_rigid(rigid, centre, x):
 
 def rigid_numpy(rigid, centre) -> tuple[np.ndarray, np.ndarray]:
     """``(R (3, 3), t (3,))`` with ``x -> R x + t`` equal to :func:`apply_rigid` (NumPy)."""
-    R = np.asarray(rotation_from_rotvec_deg(jnp.asarray(np.asarray(rigid, np.float64)[:3])))
+    R = np.asarray(rotation_from_rotvec_deg(to_jax(np.asarray(rigid, np.float64)[:3])))
     c = np.asarray(centre, np.float64)
     return R, c - R @ c + np.asarray(rigid, np.float64)[3:]
 
@@ -463,7 +464,7 @@ class ResponseModel(eqx.Module):
         """The model at surface points: ``ids`` ``(K, 3)`` local point ids of triangle
         corners, ``bary`` ``(K, 3)`` barycentrics. Returns a :class:`ResponseModel` over
         the ``K`` points."""
-        ids = jnp.asarray(ids)
+        ids = to_jax(ids)
         b = jnp.asarray(bary, self.rest.dtype)
 
         def g(arr, axis):
@@ -528,7 +529,7 @@ def build_response_model(
     jm = rig.jaw
     plo, phi = jm.pitch_limits
     raw_p = np.linspace(plo - 1.0, phi + 1.0, int(pitch_knots))  # clamped: just inside the limits
-    eff_p = np.asarray(smooth_clamp(jnp.asarray(raw_p), plo, phi, jm.softness_deg))
+    eff_p = np.asarray(smooth_clamp(to_jax(raw_p), plo, phi, jm.softness_deg))
     hy, hq = float(yaw_step_deg), float(protrusion_step_mm)
     names = list(forward.muscle_names)
     if controls is None:
@@ -584,13 +585,13 @@ def build_response_model(
     )
     tab_slope = _hermite_slopes(eff_p, tab)
     return ResponseModel(
-        rest=jnp.asarray(rest),
-        levels=jnp.asarray(lv),
-        mus=jnp.asarray(mus),
-        mus_slope=jnp.asarray(mus_slope),
-        pitch=jnp.asarray(eff_p),
-        jaw_tab=jnp.asarray(tab),
-        jaw_slope=jnp.asarray(tab_slope),
+        rest=to_jax(rest),
+        levels=to_jax(lv),
+        mus=to_jax(mus),
+        mus_slope=to_jax(mus_slope),
+        pitch=to_jax(eff_p),
+        jaw_tab=to_jax(tab),
+        jaw_slope=to_jax(tab_slope),
         jaw=jm,
         sampled=tuple(bool(i in set(sampled)) for i in range(M)),
     )
@@ -658,8 +659,8 @@ def make_priors(muscle_names: Sequence[str], options: FitOptions) -> Priors:
             right.append(names.index(n[:-2] + "_R"))
     f = lambda v: jnp.asarray(float(v))  # noqa: E731
     return Priors(
-        left=jnp.asarray(np.array(left, np.int64)),
-        right=jnp.asarray(np.array(right, np.int64)),
+        left=to_jax(np.array(left, np.int64)),
+        right=to_jax(np.array(right, np.int64)),
         sparsity=f(options.sparsity_weight),
         symmetry=f(options.symmetry_weight),
         rigid=f(options.rigid_weight),
@@ -976,11 +977,11 @@ def _y0(M: int, options: FitOptions, pitch: float):
     # NumPy first: strongly typed float64 leaves (a weakly typed leaf would re-trace the
     # compiled solver on the next call)
     y = {
-        "z": jnp.asarray(np.full(M, float(z_from_activations(options.init_activation)))),
-        "jaw": jnp.asarray(np.array([float(pitch), 0.0, 0.0])),
+        "z": to_jax(np.full(M, float(z_from_activations(options.init_activation)))),
+        "jaw": to_jax(np.array([float(pitch), 0.0, 0.0])),
     }
     if options.rigid:
-        y["rigid"] = jnp.asarray(np.zeros(6))
+        y["rigid"] = to_jax(np.zeros(6))
     return y
 
 
@@ -990,11 +991,11 @@ def _landmark_pitch(response: ResponseModel, lm_loc, lm_bary, scan: dict) -> flo
     valid = np.asarray(scan["landmark_valid"], bool)
     if valid.sum() < 3:
         return 0.0
-    gm = _gather_jit(response, jnp.asarray(lm_loc), jnp.asarray(lm_bary))
+    gm = _gather_jit(response, to_jax(lm_loc), to_jax(lm_bary))
     lo, hi = response.jaw.pitch_limits
     grid = np.arange(np.ceil(lo), np.floor(hi) + 1.0, 1.0)
     M = response.mus.shape[0]
-    X = np.asarray(_pitch_sweep(gm, jnp.asarray(grid), M))  # (G, L, 3)
+    X = np.asarray(_pitch_sweep(gm, to_jax(grid), M))  # (G, L, 3)
     tgt = np.asarray(scan["landmarks"], np.float64)
     err = np.sum(((X - tgt[None]) ** 2).sum(-1)[:, valid], axis=1)
     return float(grid[int(np.argmin(err))])
@@ -1078,7 +1079,7 @@ def fit_points(
     for i in range(R_):
         z = np.asarray(ys[i]["z"]).copy()
         z[locked] = 0.0
-        ys[i]["z"] = jnp.asarray(z)
+        ys[i]["z"] = to_jax(z)
     reports: dict[int, list[InnerReport]] = {i: [] for i in range(R_)}
     last_pts: dict[int, PointSet] = {}
     last_changes = [0] * R_
@@ -1087,7 +1088,7 @@ def fit_points(
         A, J = [], []
         for y, f, zf in zip(ys_, free_, zfix_):
             z = np.where(f > 0, np.asarray(y["z"]), zf)
-            A.append(np.asarray(activations_from_z(jnp.asarray(z))))
+            A.append(np.asarray(activations_from_z(to_jax(z))))
             J.append(np.asarray(y["jaw"]))
         X = forward.many(np.stack(A), np.stack(J))
         out = []
@@ -1114,11 +1115,11 @@ def fit_points(
         for i, (s, _) in enumerate(runs):
             c = corr_for(i, skins[i], k)
             corrs.append(c)
-            approx = np.asarray(_eval_jit(response, jnp.asarray(A[i]), ys[i]["jaw"]))
+            approx = np.asarray(_eval_jit(response, to_jax(A[i]), ys[i]["jaw"]))
             defect_v = Xr[i][fit_ids] - approx  # (P, 3): exact minus reduced model
             ids = np.concatenate([c.local, lm_loc])
             bary = np.concatenate([c.bary, np.asarray(landmark_bary)])
-            gm = _gather_jit(response, jnp.asarray(ids), jnp.asarray(bary))
+            gm = _gather_jit(response, to_jax(ids), to_jax(bary))
             dfx = np.einsum("kc,kcd->kd", bary, defect_v[ids])
             sc = scans[s]
             lw = np.where(np.asarray(sc["landmark_valid"], bool), 1.0, 0.0)
@@ -1127,10 +1128,10 @@ def fit_points(
             target = np.where(np.isfinite(target), target, 0.0)
             pts_list.append(
                 PointSet(
-                    model=gm, defect=jnp.asarray(dfx), target=jnp.asarray(target), normal=jnp.asarray(c.normal),
-                    w_point=jnp.asarray(c.weight), w_landmark=jnp.asarray(lw), centre=jnp.asarray(centre),
-                    ids=jnp.asarray(ids), bary=jnp.asarray(bary), free=jnp.asarray(free[i]),
-                    z_fixed=jnp.asarray(zfix[i]),
+                    model=gm, defect=to_jax(dfx), target=to_jax(target), normal=to_jax(c.normal),
+                    w_point=to_jax(c.weight), w_landmark=to_jax(lw), centre=to_jax(centre),
+                    ids=to_jax(ids), bary=to_jax(bary), free=to_jax(free[i]),
+                    z_fixed=to_jax(zfix[i]),
                 )
             )
         P = _stack(pts_list)
@@ -1158,7 +1159,7 @@ def fit_points(
                 z = np.asarray(yi["z"]).copy()
                 z = np.where(np.isfinite(z_start), z_start, z)
                 z = np.where(f_new > 0, z, zf_new)
-                yi["z"] = jnp.asarray(z)
+                yi["z"] = to_jax(z)
                 new_ys.append(yi)
                 free[i], zfix[i] = f_new, zf_new
                 changes[i] = n_ch
@@ -1166,7 +1167,7 @@ def fit_points(
             if not changes.any():
                 break
             P = eqx.tree_at(lambda p: (p.free, p.z_fixed), P,
-                            (jnp.asarray(np.stack(free)), jnp.asarray(np.stack(zfix))))
+                            (to_jax(np.stack(free)), to_jax(np.stack(zfix))))
             Y0 = _stack(ys)
         dt = time.perf_counter() - t_it
         for i in range(R_):
@@ -1194,7 +1195,7 @@ def fit_points(
         cand = [i for i, (ss, _) in enumerate(runs) if ss == s_]
         i = cand[int(np.argmin([finals[j][1] for j in cand]))]
         y = dict(ys[i])
-        y["z"] = jnp.where(jnp.asarray(free[i]) > 0, y["z"], jnp.asarray(zfix[i]))
+        y["z"] = jnp.where(to_jax(free[i]) > 0, y["z"], to_jax(zfix[i]))
         c = finals[i][0]
         ok = c.weight > 0
         d = np.abs(c.distance[ok])
@@ -1240,7 +1241,7 @@ def _exact_refine(forward, fit_ids, y, pts: PointSet, priors: Priors, opt: FitOp
     with the last correspondences and active set."""
     t0 = time.perf_counter()
     fn = forward._fn
-    fit_ids_j = jnp.asarray(fit_ids)
+    fit_ids_j = to_jax(fit_ids)
 
     def resid(yy, args):
         pts_, pri = args
@@ -1287,7 +1288,7 @@ def jacobian_conditioning(y, points: PointSet, priors: Priors, muscle_names: Seq
         inflation factor ``(J^T J)^-1_ii (J^T J)_ii``: 1 = independent of the others; large
         = hard to tell apart from a combination of the others).
     """
-    z = jnp.asarray(y["z"])
+    z = to_jax(y["z"])
     a0 = activations_from_z(jnp.where(points.free > 0, z, points.z_fixed))
 
     def phys(p):
@@ -1296,9 +1297,9 @@ def jacobian_conditioning(y, points: PointSet, priors: Priors, muscle_names: Seq
         r_pt, r_lm = _data_residuals(p[:M], p[M : M + 3], rig, points, priors.use_rigid)
         return jnp.concatenate([r_pt.ravel(), r_lm.ravel()])
 
-    p0 = [a0, jnp.asarray(y["jaw"])]
+    p0 = [a0, to_jax(y["jaw"])]
     if priors.use_rigid:
-        p0.append(jnp.asarray(y["rigid"]))
+        p0.append(to_jax(y["rigid"]))
     p0 = jnp.concatenate(p0)
     Jm = np.asarray(jax.jit(jax.jacfwd(phys))(p0))
     M = int(a0.shape[0])

@@ -227,12 +227,10 @@ def boundary_points(scan: Scan) -> np.ndarray:
 
 
 def _rotvec_matrix(w: np.ndarray) -> np.ndarray:
-    th = float(np.linalg.norm(w))
-    if th < 1e-15:
-        return np.eye(3)
-    k = w / th
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(th) * K + (1 - np.cos(th)) * K @ K
+    """``(3, 3)`` rotation matrix of a rotation vector (radians)."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_rotvec(np.asarray(w, dtype=np.float64)).as_matrix()
 
 
 @dataclass(frozen=True)

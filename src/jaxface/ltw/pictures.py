@@ -91,8 +91,8 @@ def compare_emotions(path, ltw_rig: LTWRig, pbd_rig=None, *, intensity: float = 
     fig.suptitle(f"emotions, intensity {intensity:g}" + (f"; heat map 0..{vmax:.1f} mm" if vmax else ""),
                  fontsize=10)
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
+    from ..render import save_figure
+
+    path = save_figure(fig, path, dpi=100)
     plt.close(fig)
     return path
