@@ -21,7 +21,7 @@ Measures (units mm, degrees, seconds):
   second scan with the compiled solver) and the batch (wall time / number of scans);
 * round trip: activations and a jaw pose synthesised on the default head (and, with
   ``--round-trip-ict``, on the ICT face) with the rig, scanned by the virtual scanner
-  (:func:`jaxface.io.scanner.scan_mesh`, 1 mm grid), fitted back with every control free:
+  (:func:`jaxface.io.scanner.scan_skin`, 1 mm grid), fitted back with every control free:
   scan match, jaw and activation errors, and the Jacobian's singular values per parameter
   group, sensitivity and variance inflation factor per parameter.
 
@@ -119,12 +119,9 @@ def round_trip(which: str, opt_kw: dict) -> dict:
     """Synthesise -> scan -> fit back on the default head (or the ICT face)."""
     from jaxface.anatomy.jaw import JawPose
     from jaxface.anatomy.rig import build_rig, synthesize
-    from jaxface.fit.metrics import SurfaceIndex
     from jaxface.fit.pipeline import SubjectOptions, fit_expressions, subject_from_rig
     from jaxface.fit.solve import FitOptions, jacobian_conditioning, make_priors
-    from jaxface.io.scanner import scan_mesh
-    from jaxface.landmarks import Landmarks
-    from jaxface.mesh import TriMesh
+    from jaxface.io.scanner import SkinLandmarks, scan_skin
 
     t0 = time.perf_counter()
     if which == "default_head":
@@ -141,14 +138,10 @@ def round_trip(which: str, opt_kw: dict) -> dict:
                             shared_path("data", "bosphorus_style", "truth.json"))
         rig = build_rig(ict.skin, ict.landmarks, upper_teeth=ict.upper_teeth, lower_teeth=ict.lower_teeth)
         face_mask = None
-    tris = np.asarray(rig.triangles)
-    lm = rig.info.landmarks
-    cp = SurfaceIndex(np.asarray(rig.rest), tris).query(np.asarray(lm.positions))
+    bound = SkinLandmarks.of_rig(rig)
 
     def scan_of(x):
-        pos = np.einsum("kc,kcd->kd", cp.bary, x[tris[cp.triangles]])
-        return scan_mesh(TriMesh(x, tris, validate=False), 1.0, landmarks=Landmarks(lm.names, pos),
-                         max_angle_deg=80.0)
+        return scan_skin(x, bound)
 
     truth_acts = {"zygomaticus_major_L": 0.6, "zygomaticus_major_R": 0.45, "frontalis_medial_L": 0.5,
                   "frontalis_medial_R": 0.5, "corrugator_R": 0.3, "orbicularis_oris": 0.25,
@@ -202,7 +195,7 @@ def main() -> None:
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from jaxface.fit.evaluation import evaluate_against_truth, load_truth
+    from jaxface.fit.evaluation import load_truth
     from jaxface.fit.solve import FitOptions
 
     truth = load_truth()

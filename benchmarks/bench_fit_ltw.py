@@ -38,27 +38,20 @@ def main() -> None:
     jax.config.update("jax_enable_x64", True)
     from jaxface.anatomy.jaw import JawPose
     from jaxface.anatomy.rig import build_rig, synthesize
-    from jaxface.fit.metrics import SurfaceIndex
     from jaxface.fit.pipeline import SubjectOptions, fit_expressions, subject_from_rig
     from jaxface.fit.solve import FitOptions
     from jaxface.head import generic_head
-    from jaxface.io.scanner import scan_mesh
-    from jaxface.landmarks import Landmarks
-    from jaxface.mesh import TriMesh
+    from jaxface.io.scanner import SkinLandmarks, scan_skin
 
     rep = {}
     t = time.perf_counter()
     head = generic_head()
     rig = build_rig(head, backend="ltw")
     rep["rig_build_s"] = time.perf_counter() - t
-    tris = np.asarray(rig.triangles)
-    lm = rig.info.landmarks
-    cp = SurfaceIndex(np.asarray(rig.rest), tris).query(np.asarray(lm.positions))
+    bound = SkinLandmarks.of_rig(rig)
 
     def scan_of(x):
-        pos = np.einsum("kc,kcd->kd", cp.bary, x[tris[cp.triangles]])
-        return scan_mesh(TriMesh(x, tris, validate=False), 1.0, landmarks=Landmarks(lm.names, pos),
-                         max_angle_deg=80.0)
+        return scan_skin(x, bound)
 
     t = time.perf_counter()
     x = np.asarray(synthesize(rig, rig.activations(TRUE), JawPose(TRUE_PITCH)))

@@ -126,7 +126,6 @@ def test_contour_paths_without_hole_and_lip_walk():
 
 def test_arc_length_matching_and_polyline_projection():
     t = np.linspace(0, 1, 7)
-    src = np.c_[t * 10, np.zeros(7), np.zeros(7)]
     dst = np.array([[0, 0, 0], [0, 10, 0], [20, 10, 0.0]])  # length 30
     out = contours.resample_polyline(dst, t)
     s = t * 30

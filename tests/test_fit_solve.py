@@ -159,22 +159,14 @@ def round_trip():
     from jaxface.anatomy.rig import build_rig, synthesize
     from jaxface.fit.pipeline import SubjectOptions, fit_expressions, subject_from_rig
     from jaxface.head import generic_head
-    from jaxface.io.scanner import scan_mesh
-    from jaxface.landmarks import Landmarks
-    from jaxface.mesh import TriMesh
+    from jaxface.io.scanner import SkinLandmarks, scan_skin
 
     head = generic_head()
     rig = build_rig(head)
-    tris = np.asarray(rig.triangles)
-    lm = rig.info.landmarks
+    bound = SkinLandmarks.of_rig(rig)
 
     def scan_of(x):
-        from jaxface.fit.metrics import SurfaceIndex
-
-        cp = SurfaceIndex(np.asarray(rig.rest), tris).query(np.asarray(lm.positions))
-        pos = np.einsum("kc,kcd->kd", cp.bary, x[tris[cp.triangles]])
-        return scan_mesh(TriMesh(x, tris, validate=False), 1.0, landmarks=Landmarks(lm.names, pos),
-                         max_angle_deg=80.0)
+        return scan_skin(x, bound)
 
     neutral = scan_of(np.asarray(rig.rest))
     a = rig.activations(TRUE)

@@ -4,7 +4,6 @@ Built on the face region of the generic head (about 4.9k vertices) with a reduce
 relaxation steps so that the module stays fast.
 """
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np

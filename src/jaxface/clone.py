@@ -369,7 +369,11 @@ def fit_source_to_target(
         movable: ``(Vs,)`` bool mask of source vertices allowed into the refinement (default:
             all).
         kernel, reg: RBF kernel and ridge (:func:`jaxface.rbf.fit`); the thesis uses the Hardy
-            ``"multiquadric"``.
+            ``"multiquadric"`` with exact interpolation (``reg=0``). The refined exact ``G``
+            fits the surface but bends between its many surface centres, which distorts motion
+            off the surface: on ICT identities (``benchmarks/bench_clone.py``) the transferred
+            displacements are 12-14 % off with ``reg=0`` and 9-10.5 % with ``reg=1``, at the
+            price of a looser surface fit (mean ray error 0.05 -> 0.2 mm).
         contour_spec: feature specification (default
             :data:`jaxface.contours.BOSPHORUS_CONTOURS`, with
             :data:`~jaxface.contours.MULTIPIE68_CONTOURS` tried when those names are absent).

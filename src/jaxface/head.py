@@ -930,7 +930,6 @@ def _teeth(upper: bool) -> TriMesh:
     bounds = np.concatenate([[0.0], bounds[:-1]])
     dist = np.min(np.abs(np.abs(s_arc)[:, None] - bounds[None, :]), axis=1)
     groove = 0.6 * np.exp(-0.5 * (dist / 0.9) ** 2)
-    height = abs(y_gum - y_edge)
     # rounded-rectangle section: psi around the section, superellipse exponent 4
     psi = np.linspace(0.0, 2.0 * np.pi, n_s, endpoint=False)
     cs, sn = np.cos(psi), np.sin(psi)

@@ -100,7 +100,7 @@ Measured (``python benchmarks/bench_pbd.py``, 2-core CPU, float32)
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from typing import Literal
 
 import equinox as eqx

@@ -102,25 +102,19 @@ def run_showcase(out, *, fit: bool = True, panel_px: int = 600, progress: Callab
 def _scan_and_fit(rig, head, out: Path, say, timings) -> list[dict]:
     from .anatomy.jaw import JawPose
     from .anatomy.rig import synthesize
-    from .fit.metrics import SurfaceIndex
     from .fit.pipeline import SubjectOptions, fit_expressions, subject_from_rig
     from .fit.solve import FitOptions
     from .io.bosphorus import write_bnt
-    from .io.scanner import scan_mesh
-    from .landmarks import Landmarks, write_lm3
-    from .mesh import TriMesh
+    from .io.scanner import SkinLandmarks, scan_skin
+    from .landmarks import write_lm3
 
     scans_dir = out / "scans"
     fits_dir = out / "fits"
     scans_dir.mkdir(exist_ok=True)
-    tris = np.asarray(rig.triangles)
-    lm = rig.info.landmarks
-    cp = SurfaceIndex(np.asarray(rig.rest), tris).query(np.asarray(lm.positions))
+    bound = SkinLandmarks.of_rig(rig)
 
     def scan_of(x, stem):
-        pos = np.einsum("kc,kcd->kd", cp.bary, x[tris[cp.triangles]])
-        s = scan_mesh(TriMesh(x, tris, validate=False), 1.0, landmarks=Landmarks(lm.names, pos),
-                      max_angle_deg=80.0, path=f"{stem}.bnt")
+        s = scan_skin(x, bound, path=f"{stem}.bnt")
         write_bnt(scans_dir / f"{stem}.bnt", s)
         write_lm3(scans_dir / f"{stem}.lm3", s.landmarks)
         return s

@@ -42,7 +42,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import pbd
-from .muscle_geometry import jax_sample_polyline
 from .muscle_map import PlacedMuscle
 from .solver import fused_group, sweep
 from .._arrays import to_jax
@@ -50,7 +49,6 @@ from .._arrays import to_jax
 __all__ = [
     "STIFFNESS",
     "SupportPoints",
-    "MuscleLayer",
     "MuscleSystem",
     "build_muscle_system",
     "solve_muscles",

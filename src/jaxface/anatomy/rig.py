@@ -21,7 +21,6 @@ Units: mm, degrees (jaw angles); +y up, +z forward, subject's left +x.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 
 import equinox as eqx
 import jax
@@ -32,8 +31,8 @@ from ..errors import RigError
 from ..mesh import TriMesh
 from .frame import face_frame
 from .jaw import JawModel, JawPose
-from .muscle_map import MuscleSpec, PlacedMuscle, load_muscle_map, place_muscles, placement_registry
-from .muscles import MuscleSystem, build_muscle_system, muscle_sweep, solve_muscles, warm_start, moved_skull_points
+from .muscle_map import MuscleSpec, load_muscle_map, place_muscles, placement_registry
+from .muscles import MuscleSystem, build_muscle_system, muscle_sweep, solve_muscles, moved_skull_points
 from .skin import SkinSystem, bind_skin, build_skin_system, eyelid_vertices, influence_map, skin_targets, solve_skin
 from .skull import Skull, estimate_skull
 

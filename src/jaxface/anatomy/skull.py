@@ -158,7 +158,6 @@ def depth_sites(skin: TriMesh, landmarks) -> tuple[list[str], np.ndarray, np.nda
     brow_y = L(glab)[1]
     add("forehead", fr.to_world([0.0, brow_y + 34.0, 15.0]), T["forehead"], True)
     for side, sgn in (("left", 1.0), ("right", -1.0)):
-        S = side.capitalize()
         eye = L(0.5 * (P[f"Outer {side} eye corner"] + P[f"Inner {side} eye corner"]))
         add(f"supraorbital {side}", P[f"Middle {side} eyebrow"], T["supraorbital"])
         add(f"infraorbital {side}", fr.to_world(eye + [0.0, -14.0, 0.0]), T["infraorbital"], True)

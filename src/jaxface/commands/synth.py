@@ -60,15 +60,6 @@ def parse_muscles(specs, muscle_names) -> dict[str, float]:
     return out
 
 
-def _landmark_binding(rig):
-    """(triangle ids, barycentrics) of the rig's landmarks on its rest skin."""
-    from ..fit.metrics import SurfaceIndex
-
-    lm = rig.info.landmarks
-    cp = SurfaceIndex(np.asarray(rig.rest), np.asarray(rig.triangles)).query(np.asarray(lm.positions))
-    return lm.names, cp.triangles, cp.bary
-
-
 def synthesize_files(rig, expressions, out: Path, *, pictures: bool = True, out_units: str = "mm",
                      progress=None) -> list[dict]:
     """Synthesise ``expressions`` on ``rig`` and write the files described in the module doc.
@@ -88,6 +79,7 @@ def synthesize_files(rig, expressions, out: Path, *, pictures: bool = True, out_
 
     from ..anatomy.rig import synthesize
     from ..facs import au_intensities
+    from ..io.scanner import SkinLandmarks
     from ..landmarks import Landmarks, write_lm3
     from ..mesh import save_mesh, unit_scale
 
@@ -95,8 +87,9 @@ def synthesize_files(rig, expressions, out: Path, *, pictures: bool = True, out_
     out.mkdir(parents=True, exist_ok=True)
     rest = np.asarray(rig.rest)
     tris = np.asarray(rig.triangles)
-    names, lt, lb = _landmark_binding(rig)
-    lm0 = np.einsum("kc,kcd->kd", lb, rest[tris[lt]])
+    bound = SkinLandmarks.of_rig(rig)
+    names = bound.names
+    lm0 = bound.positions(rest)
     s = 1.0 / unit_scale(out_units)  # mm -> output unit
     summaries = []
     for name, a, jaw, puff in expressions:
@@ -109,7 +102,7 @@ def synthesize_files(rig, expressions, out: Path, *, pictures: bool = True, out_
             from ..errors import RigError
 
             raise RigError(f"expression {name!r}: the synthesis produced non-finite positions.")
-        lm = np.einsum("kc,kcd->kd", lb, x[tris[lt]])
+        lm = bound.positions(x)
         save_mesh(out / f"{name}.ply", x, tris, units=out_units)
         write_lm3(out / f"{name}.lm3", Landmarks(names, lm * s))
         je = rig.jaw.clamp(jaw) if hasattr(rig.jaw, "clamp") else jaw

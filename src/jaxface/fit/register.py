@@ -377,7 +377,6 @@ def register_template(
             f"the scan; found {len(names)}: {names}. Template has {sorted(tl)}, scan has {sorted(sl)}.",
             missing=tuple(n for n in tl if n not in sl),
         )
-    src = np.stack([tl[n] for n in names])
     dst = np.stack([sl[n] for n in names])
 
     # attachment of every template landmark on the template surface; the used ones first
@@ -400,7 +399,6 @@ def register_template(
     B = sp.csr_matrix(
         (l_bary.ravel(), (np.repeat(np.arange(nl), 3), tf[l_tri].ravel())), shape=(nl, V)
     )
-    BtB = (B.T @ B).tocsc()
     cos_max = np.cos(np.radians(opt.max_normal_angle_deg))
     D = np.zeros_like(X_ref)
     scan_used = np.unique(index.triangles[index.active_ids])

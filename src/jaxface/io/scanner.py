@@ -47,6 +47,8 @@ __all__ = [
     "grid_axes",
     "cast_grid",
     "scan_mesh",
+    "SkinLandmarks",
+    "scan_skin",
 ]
 
 #: default grid spacing of :func:`scan_mesh`, mm (real Bosphorus scans: about 0.3-1 mm)
@@ -349,3 +351,66 @@ def scan_mesh(mesh, resolution: float = DEFAULT_RESOLUTION_MM, *, bounds=None,
                 xyz=np.where(valid[..., None], hits.xyz, np.nan))
         return scan, hits
     return scan
+
+
+@dataclasses.dataclass(frozen=True)
+class SkinLandmarks:
+    """Landmarks bound to a skin mesh, carried along when the skin deforms.
+
+    Each landmark is attached to the closest point of the rest skin (triangle id and
+    barycentric coordinates), then evaluated on any deformed copy of the same topology: the
+    landmarks of a synthesised expression are where the skin took them.
+
+    Attributes:
+        names: landmark labels; triangles: ``(K,)`` triangle ids; bary: ``(K, 3)``
+            barycentric coordinates; skin_triangles: ``(F, 3)`` the skin's triangles.
+    """
+
+    names: tuple
+    triangles: np.ndarray
+    bary: np.ndarray
+    skin_triangles: np.ndarray
+
+    @classmethod
+    def bind(cls, rest, triangles, landmarks: "Landmarks") -> "SkinLandmarks":
+        """Bind ``landmarks`` (mm) to the rest skin ``(V, 3)`` mm with ``(F, 3)`` triangles."""
+        from ..fit.metrics import SurfaceIndex
+
+        tris = np.asarray(triangles)
+        cp = SurfaceIndex(np.asarray(rest, dtype=np.float64), tris).query(np.asarray(landmarks.positions))
+        return cls(tuple(landmarks.names), np.asarray(cp.triangles), np.asarray(cp.bary), tris)
+
+    @classmethod
+    def of_rig(cls, rig) -> "SkinLandmarks":
+        """The rig's own landmarks (``rig.info.landmarks``) on its rest skin."""
+        return cls.bind(np.asarray(rig.rest), np.asarray(rig.triangles), rig.info.landmarks)
+
+    def positions(self, vertices) -> np.ndarray:
+        """``(K, 3)`` landmark positions on deformed skin vertices ``(V, 3)``, mm."""
+        x = np.asarray(vertices, dtype=np.float64)
+        return np.einsum("kc,kcd->kd", self.bary, x[self.skin_triangles[self.triangles]])
+
+    def landmarks(self, vertices) -> "Landmarks":
+        """The same as a :class:`jaxface.landmarks.Landmarks`."""
+        from ..landmarks import Landmarks
+
+        return Landmarks(list(self.names), self.positions(vertices))
+
+
+def scan_skin(vertices, bound: SkinLandmarks, resolution: float = 1.0, *,
+              max_angle_deg: float | None = 80.0, **kwargs) -> "Scan":
+    """Bosphorus-style scan of a (simulated) skin with its landmarks carried along.
+
+    Args:
+        vertices: ``(V, 3)`` skin vertices, mm (the topology ``bound`` was made on).
+        bound: :class:`SkinLandmarks` of that skin.
+        resolution: grid spacing, mm.
+        max_angle_deg: grazing-angle cut-off (see :func:`scan_mesh`).
+        **kwargs: passed to :func:`scan_mesh` (``noise_mm``, ``path``, ...).
+
+    Returns:
+        the grid :class:`jaxface.io.Scan` (mm) with the landmarks at their deformed positions.
+    """
+    x = np.asarray(vertices, dtype=np.float64)
+    return scan_mesh((x, bound.skin_triangles), resolution, landmarks=bound.landmarks(x),
+                     max_angle_deg=max_angle_deg, **kwargs)
