@@ -69,6 +69,27 @@ def test_cast_segments_matches_mesh_ray_cast():
     np.testing.assert_allclose(t1[h1], fwd[h1], atol=1e-9)
 
 
+def test_cast_through_a_vertex_keeps_a_triangle_that_faces_the_ray():
+    # a ray through a vertex meets all its triangles at the same distance; when the first of
+    # them faces away (a fold), another one must still give the hit (regression: merging the
+    # coincident hits before the facing filter lost the hit)
+    mesh = grid_surface(9, bump=False)
+    V, F = mesh.vertices, mesh.triangles.copy()
+    v = int(np.argmin(np.linalg.norm(V, axis=1)))  # the centre vertex
+    inc = np.flatnonzero((F == v).any(axis=1))
+    assert inc.size == 6
+    d = np.array([[0.0, 0.0, 1.0]])
+    F[inc.min()] = F[inc.min()][::-1]  # the lowest-numbered incident triangle faces -z
+    folded = TriMesh(V, F, validate=False)
+    all_hits = folded.ray_cast(V[v] - d[0], d[0], all_hits=True, max_distance=2.0, merge_coincident=False)
+    assert all_hits.distances.size == 6
+    merged = folded.ray_cast(V[v] - d[0], d[0], all_hits=True, max_distance=2.0)
+    assert merged.distances.size == 1
+    hit, tri, bary, t = clone.cast_segments(V[v][None], d, 3.0, mesh=folded)
+    assert hit[0] and abs(t[0]) < 1e-9 and tri[0] != inc.min()
+    np.testing.assert_allclose(np.einsum("kj,kjd->kd", bary, V[F[tri]]), V[v][None], atol=1e-9)
+
+
 # ------------------------------------------------------------------------ contours
 def _connected(mesh, path):
     edges = {tuple(e) for e in mesh.edges.tolist()}

@@ -218,7 +218,8 @@ def cast_segments(
             break
         Lk = frac * L
         back = Lk if two_sided else 0.0
-        h = mesh.ray_cast(o[rays] - back * d[rays], d[rays], all_hits=True, max_distance=Lk + back)
+        h = mesh.ray_cast(o[rays] - back * d[rays], d[rays], all_hits=True, max_distance=Lk + back,
+                          merge_coincident=False)
         ray = rays[np.asarray(h.ray_index)]
         tri = np.asarray(h.points.tri, dtype=np.int64)
         # barycentrics in float64 from the (float64) hit locations: SurfacePoints holds JAX

@@ -810,14 +810,14 @@ class TriMesh:
 
     def ray_cast(self, origins, directions, all_hits: bool = False, *,
                  min_distance: float = 0.0, max_distance: float = np.inf,
-                 chunk: int = 200_000) -> RayHits:
+                 chunk: int = 200_000, merge_coincident: bool = True) -> RayHits:
         """Cast rays against the mesh; first hit or all hits.
 
         Each ray is clipped to the mesh's bounding box (and to ``max_distance``) and cut into
         pieces (about six mean edge lengths) whose bounding boxes query trimesh's r-tree
         of the triangles; the candidates are intersected exactly (Moller-Trumbore, vectorised).
         For first hits the rays are searched in growing steps and retired at their first hit.
-        A ray through a shared edge or vertex reports the point once. Tested against
+        A ray through a shared edge or vertex reports the point once (see ``merge_coincident``). Tested against
         ``trimesh.ray.ray_triangle.RayMeshIntersector``, and much faster than it for long rays.
 
         Args:
@@ -830,6 +830,9 @@ class TriMesh:
                 origin itself counts).
             max_distance: ignore hits farther than this, mm (shorter rays are faster).
             chunk: maximum number of ray pieces processed at once (memory knob).
+            merge_coincident: with ``all_hits``, report a crossing through a shared edge or
+                vertex once (True) or once per triangle met there (False: callers that filter
+                hits by triangle, e.g. by facing, need every candidate).
 
         Returns:
             :class:`RayHits` (compact: one row per hit, ``ray_index`` maps back to the rays).
@@ -915,7 +918,7 @@ class TriMesh:
         ray, tri, dist = ray[keep], tri[keep], np.maximum(dist[keep], 0.0)
         order = np.lexsort((dist, ray))
         ray, tri, dist = ray[order], tri[order], dist[order]
-        if ray.size:
+        if ray.size and (merge_coincident or not all_hits):
             # one hit per crossing: drop repeats at (nearly) the same distance on the same ray
             # (a ray through a shared edge or vertex meets several triangles there)
             dup = np.zeros(ray.size, dtype=bool)
