@@ -243,3 +243,24 @@ def test_ict_face_builds_and_animates(shared):
     assert d[1] > 0.5 and d[0] > 0.3, d                              # smile: corner up and out
     assert jaw[-1, j, 1] - rest[j, 1] < -3.0                         # the jaw opened
     assert np.all(np.isfinite(smile)) and np.all(np.isfinite(jaw))
+
+
+def test_expression_sheet_draws_the_heads_eyes(rig, tmp_path):
+    from types import SimpleNamespace
+
+    from matplotlib.image import imread
+
+    from jaxface.anatomy.pictures import expression_sheet
+
+    expr = [("AU26", {"AU26": 1.0})]
+    with_head = expression_sheet(tmp_path / "head.png", rig, expr, views=("front",), px=200,
+                                 head=generic_head())
+    skin_only = expression_sheet(tmp_path / "skin.png", rig, expr, views=("front",), px=200)
+
+    def bluish(path):  # iris pixels: the skin is reddish, the irises blue-grey
+        img = imread(path)[..., :3]
+        return int(np.sum(img[..., 2] > img[..., 0] + 0.04))
+
+    assert bluish(with_head) > 30 and bluish(skin_only) == 0
+    with pytest.raises(RigError, match="skin vertices"):
+        expression_sheet(tmp_path / "bad.png", rig, expr, head=SimpleNamespace(mesh=SimpleNamespace(n_vertices=3)))

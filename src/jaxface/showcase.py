@@ -81,12 +81,12 @@ def run_showcase(out, *, fit: bool = True, panel_px: int = 600, progress: Callab
     report["files"]["jaw"] = timed("jaw_s", jaw_diagram, out / "jaw.png", rig).name
 
     say("synthesising and rendering the six emotions")
-    paths = timed("emotions_s", emotion_pictures, rig, out)
+    paths = timed("emotions_s", emotion_pictures, rig, out, head=head)
     report["files"]["emotions"] = [p.name for p in paths]
     say("synthesising and rendering single action units")
     aus = ["AU1", "AU2", "AU4", "AU6", "AU9", "AU10", "AU12", "AU15", "AU20", "AU26"]
     p = timed("aus_s", expression_sheet, out / "aus.png", rig, [(a, {a: 1.0}) for a in aus],
-              views=("front",), ncol=5, title="single action units (intensity 1)")
+              views=("front",), ncol=5, title="single action units (intensity 1)", head=head)
     report["files"]["aus"] = p.name
 
     if fit:

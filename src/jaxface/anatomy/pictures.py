@@ -20,15 +20,19 @@ __all__ = ["emotion_pictures", "expression_sheet", "muscle_map_picture", "jaw_di
 EMOTION_ORDER = ("happiness", "sadness", "surprise", "fear", "anger", "disgust")
 
 
-def _render(vertices, triangles, view, px, bounds):
-    from ..render import Layer, rasterize
+def _layers(rig: Rig, x, jaw, head):
+    """The skin ``x`` alone, or with ``head``'s eyes and teeth (lower teeth moved with the jaw)."""
+    from ..render import Layer, head_layers
 
-    return rasterize([Layer(np.asarray(vertices), np.asarray(triangles))], view=view, width=px,
-                     height=px, bounds=bounds).image
+    if head is None:
+        return [Layer(np.asarray(x), np.asarray(rig.triangles))]
+    R, t = rig.jaw.transform(jaw)
+    lower = np.asarray(head.lower_teeth.vertices) @ np.asarray(R).T + np.asarray(t)
+    return head_layers(head, skin=np.asarray(x), lower_teeth=lower)
 
 
 def expression_sheet(path, rig: Rig, expressions, *, views=("front", (30.0, 5.0)), px: int = 420,
-                     ncol: int | None = None, title: str | None = None) -> Path:
+                     ncol: int | None = None, title: str | None = None, head=None) -> Path:
     """Draw expressions side by side.
 
     Args:
@@ -39,6 +43,8 @@ def expression_sheet(path, rig: Rig, expressions, *, views=("front", (30.0, 5.0)
         px: pixels per panel.
         ncol: panels per row (default: all views of one expression per row).
         title: figure title.
+        head: optional :class:`jaxface.head.Head` the rig was built on (same skin topology):
+            its eyes and teeth are drawn too, the lower teeth following the jaw.
 
     Returns:
         the written path.
@@ -54,12 +60,20 @@ def expression_sheet(path, rig: Rig, expressions, *, views=("front", (30.0, 5.0)
     lo = face.to_world([-85.0, -125.0, -120.0])
     hi = face.to_world([85.0, 75.0, 60.0])
     bounds = np.stack([np.minimum(lo, hi), np.maximum(lo, hi)])
+    from ..render import rasterize
+
+    if head is not None and head.mesh.n_vertices != rest.shape[0]:
+        from ..errors import RigError
+
+        raise RigError(f"head has {head.mesh.n_vertices} skin vertices, the rig {rest.shape[0]}: "
+                         "pass the head the rig was built on, or head=None.")
     panels = []
     for name, aus in expressions:
         a, jaw, puff = facs.aus_to_controls(aus, rig.muscle_names)
         x = np.asarray(synthesize(rig, jnp.asarray(a, rig.rest.dtype), jaw, puff)) if aus else rest
+        layers = _layers(rig, x, jaw, head)
         for v in views:
-            panels.append((f"{name}", _render(x, rig.triangles, v, px, bounds)))
+            panels.append((f"{name}", rasterize(layers, view=v, width=px, height=px, bounds=bounds).image))
     ncol = ncol or len(views)
     nrow = (len(panels) + ncol - 1) // ncol
     fig, axs = plt.subplots(nrow, ncol, figsize=(3.0 * ncol, 3.1 * nrow), squeeze=False)
@@ -78,11 +92,12 @@ def expression_sheet(path, rig: Rig, expressions, *, views=("front", (30.0, 5.0)
     return path
 
 
-def emotion_pictures(rig: Rig, out_dir, *, intensity: float = 1.0, px: int = 420) -> list[Path]:
+def emotion_pictures(rig: Rig, out_dir, *, intensity: float = 1.0, px: int = 420,
+                     head=None) -> list[Path]:
     """Write the six emotions (:data:`jaxface.facs.EMOTIONS`) as PNGs into ``out_dir``.
 
     Files: ``emotion_<name>.png`` (neutral and the emotion, front and three-quarter views) and
-    ``emotions.png`` (all six, front view).
+    ``emotions.png`` (all six, front view). ``head``: see :func:`expression_sheet`.
 
     Returns:
         the written paths.
@@ -93,10 +108,10 @@ def emotion_pictures(rig: Rig, out_dir, *, intensity: float = 1.0, px: int = 420
         aus = {k: v * intensity for k, v in facs.EMOTIONS[name].items()}
         paths.append(expression_sheet(out / f"emotion_{name}.png", rig,
                                       [("neutral", {}), (name, aus)], px=px, ncol=2,
-                                      views=("front", (35.0, 5.0))))
+                                      views=("front", (35.0, 5.0)), head=head))
     paths.append(expression_sheet(out / "emotions.png", rig,
                                   [("neutral", {})] + [(n, facs.EMOTIONS[n]) for n in EMOTION_ORDER],
-                                  views=("front",), ncol=4, px=px))
+                                  views=("front",), ncol=4, px=px, head=head))
     return paths
 
 
