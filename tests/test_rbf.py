@@ -101,6 +101,18 @@ def test_numpy_path_matches_jax(kernel):
     np.testing.assert_allclose(np.asarray(mn(x)), a, atol=1e-8)  # JAX call on a NumPy morph
 
 
+@pytest.mark.parametrize("kernel", KERNELS)
+def test_numpy_path_in_parallel_blocks_matches_jax(kernel):
+    # 40 centres x 40,000 points: above rbf._PARALLEL_MIN_ELEMENTS, evaluated in blocks on threads
+    src, dst = _cloud(40, seed=8)
+    x = np.random.default_rng(9).normal(size=(40_000, 3)) * 60
+    assert x.shape[0] * 40 >= rbf._PARALLEL_MIN_ELEMENTS
+    mn = rbf.fit_numpy(src, dst, kernel)
+    ref = np.asarray(rbf.fit(src, dst, kernel)(x))
+    np.testing.assert_allclose(mn.apply_np(x, chunk_size=1000), ref, atol=1e-8)
+    np.testing.assert_allclose(mn.apply_np(x[:20]), ref[:20], atol=1e-8)  # one block, no threads
+
+
 def _fd_jacobian(f, x, eps=1e-5):
     """Central finite differences of f: (k, 3) -> (m, 3), shape (m, 3, k, 3)."""
     x = np.asarray(x, dtype=np.float64)
