@@ -50,6 +50,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._parallel import thread_map
 from .errors import RBFError
 
 __all__ = [
@@ -78,15 +79,6 @@ _PLANAR_RTOL = 1e-6
 # the largest (points x centres) block evaluated at once
 _MAX_BLOCK_ELEMENTS = 1 << 21
 _PARALLEL_MIN_ELEMENTS = 1 << 20  # Morph.apply_np: below this, threads cost more than they save
-
-
-@functools.lru_cache(maxsize=1)
-def _thread_pool():
-    import concurrent.futures
-    import os
-
-    return concurrent.futures.ThreadPoolExecutor(max_workers=max(1, os.cpu_count() or 1),
-                                                 thread_name_prefix="jaxface-rbf")
 
 
 # --------------------------------------------------------------------------------------
@@ -248,9 +240,8 @@ class Morph(eqx.Module):
             out[s : s + chunk] = kx @ W + A[0] + xn @ A[1:]
 
         starts = range(0, x.shape[0], chunk)
-        if x.shape[0] * n >= _PARALLEL_MIN_ELEMENTS and len(starts) > 1:
-            # NumPy releases the GIL in these kernels: blocks run on all cores
-            list(_thread_pool().map(block, starts))
+        if x.shape[0] * n >= _PARALLEL_MIN_ELEMENTS:
+            thread_map(block, starts)  # NumPy releases the GIL in these kernels
         else:
             for s in starts:
                 block(s)

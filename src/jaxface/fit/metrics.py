@@ -33,6 +33,7 @@ from typing import Any, Mapping
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .._parallel import thread_map
 from ..errors import FitError, LandmarkError, MeshError
 
 __all__ = [
@@ -344,7 +345,7 @@ class SurfaceIndex:
         max_distance: float | None = None,
         exact: bool = True,
         k_vertices: int = 3,
-        chunk: int = 20000,
+        chunk: int = 8192,
     ) -> ClosestPoints:
         """Closest surface points of ``points`` ``(K, 3)`` mm; see :class:`ClosestPoints`.
 
@@ -374,10 +375,11 @@ class SurfaceIndex:
                 elements=bad[:100],
             )
         if len(q) > chunk:
-            parts = [
-                self.query(q[s : s + chunk], max_distance=max_distance, exact=exact, k_vertices=k_vertices)
-                for s in range(0, len(q), chunk)
-            ]
+            # independent blocks: on all cores (NumPy and the k-d trees release the GIL)
+            parts = thread_map(
+                lambda s: self.query(q[s : s + chunk], max_distance=max_distance, exact=exact,
+                                     k_vertices=k_vertices, chunk=chunk),
+                range(0, len(q), chunk))
             return ClosestPoints(
                 *(np.concatenate([getattr(p, f.name) for p in parts]) for f in dataclasses.fields(ClosestPoints))
             )

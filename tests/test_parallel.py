@@ -1,0 +1,37 @@
+"""jaxface._parallel.thread_map: order, exceptions, and a real parallel NumPy workload."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from jaxface._parallel import n_workers, thread_map
+
+
+def test_results_in_input_order_and_errors_propagate():
+    assert thread_map(lambda i: i * i, range(17)) == [i * i for i in range(17)]
+    assert thread_map(lambda i: i, []) == []
+    assert n_workers() >= 1
+
+    def boom(i):
+        if i == 3:
+            raise ValueError("block 3")
+        return i
+
+    with pytest.raises(ValueError, match="block 3"):
+        thread_map(boom, range(6))
+
+
+def test_closest_point_query_in_blocks_equals_one_block():
+    from jaxface.fit.metrics import SurfaceIndex
+    from jaxface.head import generic_head
+
+    mesh = generic_head().mesh
+    rng = np.random.default_rng(0)
+    q = mesh.vertices[rng.integers(0, mesh.n_vertices, 5000)] + rng.normal(scale=2.0, size=(5000, 3))
+    idx = SurfaceIndex(mesh.vertices, mesh.triangles)
+    one = idx.query(q, chunk=10_000)
+    blocks = idx.query(q, chunk=700)  # 8 blocks on the thread pool
+    np.testing.assert_array_equal(one.triangles, blocks.triangles)
+    np.testing.assert_allclose(one.distances, blocks.distances, atol=0)
+    np.testing.assert_allclose(one.points, blocks.points, atol=0)
