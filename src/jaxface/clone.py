@@ -191,7 +191,7 @@ def cast_segments(
         ``(hit (R,) bool, tri (R,) int64, bary (R, 3), t (R,) signed distance along d in mm)``;
         rays that missed have ``tri = -1``, ``bary = 0``, ``t = inf``.
     """
-    from .mesh import TriMesh, closest_point_barycentric
+    from .mesh import TriMesh
 
     if mesh is None:
         if vertices is None or triangles is None:
@@ -222,11 +222,7 @@ def cast_segments(
                           merge_coincident=False)
         ray = rays[np.asarray(h.ray_index)]
         tri = np.asarray(h.points.tri, dtype=np.int64)
-        # barycentrics in float64 from the (float64) hit locations: SurfacePoints holds JAX
-        # arrays, float32 unless x64 is enabled
-        corners = mesh.vertices[mesh.triangles[tri]]
-        bary = closest_point_barycentric(np.asarray(h.locations), corners[:, 0], corners[:, 1],
-                                         corners[:, 2])
+        bary = h.barycentric
         t = np.asarray(h.distances) - back
         if normal_dot_min is not None:
             ok = np.einsum("ij,ij->i", mesh.face_normals[tri], d[ray]) >= normal_dot_min

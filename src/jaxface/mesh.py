@@ -190,6 +190,8 @@ class RayHits:
             distance.
         locations: ``(K, 3)`` hit positions, mm.
         hit: ``(R,)`` bool, whether each input ray hit the mesh at all.
+        barycentric: ``(K, 3)`` float64 barycentrics of the hits (``points.bary`` holds the
+            same as a JAX array, float32 unless x64 is enabled).
 
     For a first-hit cast ``K == hit.sum()`` and ``ray_index == np.flatnonzero(hit)``.
     """
@@ -199,6 +201,7 @@ class RayHits:
     ray_index: np.ndarray
     locations: np.ndarray
     hit: np.ndarray
+    barycentric: np.ndarray
 
     @property
     def first_distance(self) -> np.ndarray:
@@ -219,7 +222,7 @@ class RayHits:
         dist = np.full(r, np.inf)
         rays, first = np.unique(self.ray_index, return_index=True)
         tri[rays] = np.asarray(self.points.tri)[first]
-        bary[rays] = np.asarray(self.points.bary)[first]
+        bary[rays] = self.barycentric[first]
         dist[rays] = self.distances[first]
         return tri, bary, dist
 
@@ -942,6 +945,7 @@ class TriMesh:
             ray_index=_readonly(ray),
             locations=_readonly(loc),
             hit=_readonly(hit),
+            barycentric=_readonly(bary),
         )
 
     def _cast_intervals(self, o, d, rays, ta, tb, piece, eps, chunk):

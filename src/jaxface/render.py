@@ -614,11 +614,16 @@ def figure_views(meshes, views: Sequence = ("front", "side"), *, landmarks=None,
     return fig
 
 
-def save_figure(fig, path, *, dpi: int | None = None) -> Path:
-    """Write a matplotlib figure (PNG/PDF/SVG by suffix), creating parent folders."""
+def save_figure(fig, path, *, dpi: int | None = None, close: bool = False) -> Path:
+    """Write a matplotlib figure (PNG/PDF/SVG by suffix), creating parent folders; ``close``
+    also closes the figure (frees it in pyplot's figure manager)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=dpi or fig.dpi, facecolor="white")
+    if close:
+        import matplotlib.pyplot as plt
+
+        plt.close(fig)
     return path
 
 

@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._arrays import to_jax
 from .errors import MeshError
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -126,20 +127,18 @@ class SurfacePoints(eqx.Module):
         bary: ``(K, 3)`` barycentric coordinates (float; integer input becomes the default
             float dtype). Rows should sum to 1; see :meth:`check` for a value check.
         """
-        # concrete input is converted in NumPy and moved with device_put: jnp.asarray and
-        # astype compile a small program for every new K (about 25 ms each on a CPU)
+        # concrete input is converted in NumPy (to_jax): jnp.asarray and astype compile a
+        # small program for every new K (about 25 ms each on a CPU)
         if isinstance(tri, jax.core.Tracer):
             tri = tri.astype(jnp.int32)
         else:
-            tri = jax.device_put(np.asarray(tri).astype(np.int32, copy=False))
+            tri = to_jax(np.asarray(tri).astype(np.int32, copy=False))
         if isinstance(bary, jax.core.Tracer):
             if not jnp.issubdtype(bary.dtype, jnp.floating):
                 bary = bary.astype(jnp.result_type(float))
         else:
             b = np.asarray(bary)
-            if not np.issubdtype(b.dtype, np.floating):
-                b = b.astype(np.float64)
-            bary = jax.device_put(b)
+            bary = to_jax(b if np.issubdtype(b.dtype, np.floating) else b.astype(np.float64))
         if tri.ndim != 1 or bary.ndim != 2 or bary.shape[-1] != 3 or bary.shape[0] != tri.shape[0]:
             raise MeshError(
                 f"SurfacePoints needs tri (K,) and bary (K, 3); got tri {tuple(tri.shape)} and "

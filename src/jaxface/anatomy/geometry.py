@@ -101,8 +101,6 @@ def segment_cast(mesh: TriMesh, origins, directions, max_dist, *, min_dist: floa
     Returns:
         :class:`SegmentHits`.
     """
-    from ..mesh import closest_point_barycentric
-
     o = np.atleast_2d(np.asarray(origins, dtype=np.float64))
     d = np.broadcast_to(np.asarray(directions, dtype=np.float64), o.shape)
     nrm = np.linalg.norm(d, axis=1)
@@ -120,14 +118,11 @@ def segment_cast(mesh: TriMesh, origins, directions, max_dist, *, min_dist: floa
         rr = rays[np.asarray(h.ray_index)]
         t = np.asarray(h.distances)
         keep = (t <= L[rr]) & (t > min_dist)
-        rr, t, loc = rr[keep], t[keep], np.asarray(h.locations)[keep]
-        tt = np.asarray(h.points.tri, dtype=np.int64)[keep]
-        c = mesh.vertices[mesh.triangles[tt]]
+        rr, t = rr[keep], t[keep]
         hit[rr] = True
         tbest[rr] = t
-        tri[rr] = tt
-        # float64 barycentrics from the float64 hit points (SurfacePoints holds JAX arrays)
-        bary[rr] = closest_point_barycentric(loc, c[:, 0], c[:, 1], c[:, 2])
+        tri[rr] = np.asarray(h.points.tri, dtype=np.int64)[keep]
+        bary[rr] = h.barycentric[keep]
     dn = np.divide(d, nrm[:, None], out=np.zeros_like(d), where=nrm[:, None] > 1e-300)
     loc = o + dn * np.where(np.isfinite(tbest), tbest, 0.0)[:, None]
     return SegmentHits(hit, tbest, tri, bary, loc)

@@ -438,20 +438,16 @@ def _modiolus(mod_fib, fib, sph, rest, h_max: int) -> dict:
         if mod_fib[s_]:
             centre[s_] = rest[[pid for _, _, pid in mod_fib[s_]]].mean(axis=0)
             ok[s_] = True
-    if sph and ok.any():
-        n = sph[0]["ids"].shape[1]
-        mod_w = np.zeros((len(sph), 3, n))
-        mod_side = np.zeros((len(sph), 3, n), np.int64)
+    n = sph[0]["ids"].shape[1] if sph else 2
+    mod_w = np.zeros((len(sph), 3, n))
+    mod_side = np.zeros((len(sph), 3, n), np.int64)
+    if ok.any():
         for k, s in enumerate(sph):
             pos = rest[s["bottom"]]                                                   # (3, n, 3)
             d = np.stack([np.linalg.norm(pos - centre[i], axis=-1) if ok[i] else np.full(pos.shape[:2], np.inf)
                           for i in (0, 1)])                                           # (2, 3, n)
             mod_side[k] = np.argmin(d, axis=0)
             mod_w[k] = np.exp(-0.5 * (np.min(d, axis=0) / MODIOLUS_SIGMA_MM) ** 2)
-    else:
-        n = sph[0]["ids"].shape[1] if sph else 2
-        mod_w = np.zeros((len(sph), 3, n))
-        mod_side = np.zeros((len(sph), 3, n), np.int64)
     return dict(mod_w=mod_w, mod_side=mod_side, mod_end=end, mod_last=last, mod_fw=fw)
 
 

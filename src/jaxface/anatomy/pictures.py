@@ -87,9 +87,7 @@ def expression_sheet(path, rig: Rig, expressions, *, views=("front", (30.0, 5.0)
     fig.tight_layout()
     from ..render import save_figure
 
-    path = save_figure(fig, path, dpi=100)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=100, close=True)
 
 
 def emotion_pictures(rig: Rig, out_dir, *, intensity: float = 1.0, px: int = 420,
@@ -177,9 +175,7 @@ def muscle_map_picture(path, rig: Rig, *, px: int = 460) -> Path:
     fig.tight_layout(rect=(0, 0, 0.83, 1))
     from ..render import save_figure
 
-    path = save_figure(fig, path, dpi=100)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=100, close=True)
 
 
 def jaw_diagram(path, rig: Rig, pose=None, *, px: int = 460) -> Path:
@@ -234,6 +230,4 @@ def jaw_diagram(path, rig: Rig, pose=None, *, px: int = 460) -> Path:
     fig.tight_layout()
     from ..render import save_figure
 
-    path = save_figure(fig, path, dpi=100)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=100, close=True)

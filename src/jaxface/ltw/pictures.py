@@ -93,6 +93,4 @@ def compare_emotions(path, ltw_rig: LTWRig, pbd_rig=None, *, intensity: float = 
     fig.tight_layout()
     from ..render import save_figure
 
-    path = save_figure(fig, path, dpi=100)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=100, close=True)
