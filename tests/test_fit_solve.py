@@ -176,11 +176,11 @@ def round_trip():
                                options=SubjectOptions(levels=2, pitch_knots=6, controls=CONTROLS))
     opt = FitOptions(n_points=800, outer_iterations=4, max_steps=20, jaw_starts=(0.0,), controls=CONTROLS)
     (res,) = fit_expressions(subject, [expr], options=opt)
-    return subject, res, x, opt
+    return subject, res, x, opt, expr, neutral
 
 
 def test_round_trip_recovers_activations_jaw_and_surface(round_trip):
-    subject, res, x_true, _ = round_trip
+    subject, res, x_true = round_trip[:3]
     names = list(subject.muscle_names)
     assert res.status == "successful", res.solver_dict()
     # the synthetic scan is matched within 0.1 mm (mean scan point -> fitted skin)
@@ -203,7 +203,7 @@ def test_round_trip_recovers_activations_jaw_and_surface(round_trip):
 def test_round_trip_conditioning_report(round_trip):
     from jaxface.fit.solve import jacobian_conditioning, make_priors
 
-    subject, res, _, opt = round_trip
+    subject, res, _, opt = round_trip[:4]
     pri = make_priors(subject.muscle_names, opt)
     cond = jacobian_conditioning(res.fit.y, res.fit.points, pri, subject.muscle_names)
     for g in ("activations", "jaw", "rigid", "all"):
@@ -222,3 +222,22 @@ def test_fit_rejects_unknown_controls(round_trip):
     with pytest.raises(FitError, match="unknown controls"):
         fit_points(subject.forward, subject.response, subject.fit_ids, subject.face_triangles, [],
                    subject.landmark_tri, subject.landmark_bary, FitOptions(controls=("no_such_muscle",)))
+
+
+def test_batch_fit_matches_single_fits_in_input_order(round_trip):
+    """A batch (alignment and evaluation of the scans on the outer thread pool, one vmapped
+    solve) returns one fit per scan, in input order, each the fit the scan gets alone."""
+    from jaxface.fit.pipeline import fit_expressions
+
+    subject, res, _, opt, expr, neutral = round_trip
+    seen = []
+    batch = fit_expressions(subject, [neutral, expr], options=opt, on_result=lambda f: seen.append(f.stem))
+    assert [f.stem for f in batch] == seen and len(batch) == 2
+    rest_fit, expr_fit = batch
+    for n, v in res.activations.items():
+        assert abs(expr_fit.activations[n] - v) < 0.02, (n, expr_fit.activations[n], v)
+    assert abs(expr_fit.jaw["pitch_deg"] - res.jaw["pitch_deg"]) < 0.2
+    assert expr_fit.metrics.scan_to_fit["all"].mean < 0.1
+    # the neutral scan of the batch is fitted with (almost) nothing contracted and the jaw closed
+    assert max(rest_fit.activations.values()) < 0.05 and abs(rest_fit.jaw["pitch_deg"]) < 0.5
+    assert rest_fit.metrics.scan_to_fit["all"].mean < 0.1

@@ -35,3 +35,23 @@ def test_closest_point_query_in_blocks_equals_one_block():
     np.testing.assert_array_equal(one.triangles, blocks.triangles)
     np.testing.assert_allclose(one.distances, blocks.distances, atol=0)
     np.testing.assert_allclose(one.points, blocks.points, atol=0)
+
+
+def test_outer_jobs_may_use_the_inner_pool():
+    """Whole jobs on the outer pool that run blocked queries on the inner pool (what a batch
+    fit does per scan) finish, in order, with the sequential results."""
+    from jaxface.fit.metrics import SurfaceIndex
+    from jaxface.head import generic_head
+
+    mesh = generic_head().mesh
+    idx = SurfaceIndex(mesh.vertices, mesh.triangles)
+    rng = np.random.default_rng(1)
+    qs = [mesh.vertices[rng.integers(0, mesh.n_vertices, 3000)] + rng.normal(scale=1.0, size=(3000, 3))
+          for _ in range(5)]
+
+    def job(q):
+        return idx.query(q, chunk=500).distances  # 6 inner blocks per job
+
+    par = thread_map(job, qs, outer=True)
+    for q, d in zip(qs, par):
+        np.testing.assert_array_equal(d, idx.query(q, chunk=10_000).distances)

@@ -2,7 +2,12 @@
 
 NumPy, SciPy's k-d trees and BLAS release the GIL inside their kernels, so independent
 blocks of build-time work (RBF evaluation, closest-point queries) run in parallel on threads
-without copying data. One pool per process, sized to the machine's cores.
+without copying data. Two pools per process, each sized to the machine's cores: the *inner*
+pool runs the blocks of one kernel (:func:`thread_map`); the *outer* pool runs whole
+independent jobs, such as the per-scan alignment and evaluation of a batch fit
+(``thread_map(..., outer=True)``). An outer job may call :func:`thread_map` (the inner pool
+never waits on the outer one, so nesting cannot deadlock); an inner block must not submit
+outer jobs.
 """
 
 from __future__ import annotations
@@ -25,17 +30,24 @@ def n_workers() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-@functools.lru_cache(maxsize=1)
-def _pool():
+@functools.lru_cache(maxsize=2)
+def _pool(outer: bool = False):
     import concurrent.futures
 
-    return concurrent.futures.ThreadPoolExecutor(max_workers=n_workers(), thread_name_prefix="jaxface")
+    name = "jaxface-outer" if outer else "jaxface"
+    return concurrent.futures.ThreadPoolExecutor(max_workers=n_workers(), thread_name_prefix=name)
 
 
-def thread_map(fn: Callable[[T], R], items: Iterable[T]) -> list[R]:
-    """``[fn(x) for x in items]``, on the thread pool when there are several items and cores
-    (results in input order; the first exception is raised)."""
+def thread_map(fn: Callable[[T], R], items: Iterable[T], *, outer: bool = False) -> list[R]:
+    """``[fn(x) for x in items]``, on a thread pool when there are several items and cores
+    (results in input order; the first exception is raised).
+
+    Args:
+        fn: the work of one item.
+        items: the items.
+        outer: run on the outer pool (whole jobs that may themselves call ``thread_map``).
+    """
     items = list(items)
     if len(items) < 2 or n_workers() < 2:
         return [fn(x) for x in items]
-    return list(_pool().map(fn, items))
+    return list(_pool(bool(outer)).map(fn, items))

@@ -619,7 +619,10 @@ def fit_expressions(
         options: :class:`~jaxface.fit.solve.FitOptions`.
         scan_landmarks: optional landmarks per scan (override the scans' own).
         progress: called with short texts.
-        batch_size: scans solved together with ``jax.vmap`` (default: all).
+        batch_size: scans solved together with ``jax.vmap`` (default: all). The alignment
+            and the evaluation (metrics, baselines) of a batch's scans run concurrently on the
+            outer thread pool (:mod:`jaxface._parallel`), so a batch costs less per scan than
+            single fits.
         on_result: called with each finished :class:`ExpressionFit` (e.g. to write it).
 
     Returns:
@@ -634,6 +637,7 @@ def fit_expressions(
     from ..mesh import TriMesh
     from .align import align_scans
     from .baselines import baseline_b0, baseline_b1
+    from .._parallel import thread_map
     from .metrics import fit_metrics
 
     opt = options or FitOptions()
@@ -657,40 +661,48 @@ def fit_expressions(
     results: list[ExpressionFit] = []
     reg = subject.registration
     tris = subject.triangles
+
+    def prepare(s):
+        al = align_scans(s, subject.neutral, fixed_index=subject.neutral_index)
+        return al, scan_fit_inputs(subject, s, al.transform, opt.n_points, seed=opt.seed)
+
+    def evaluate(item):
+        s, al, f = item
+        Ti = al.transform.inverse()
+        fitted = TriMesh(Ti.apply(f.skin), tris, validate=False)
+        flm = subject.landmarks_on(fitted.vertices)
+        metrics = fit_metrics(fitted, s, face_mask=reg.face_mask, fitted_landmarks=flm, scan_landmarks=s.landmarks)
+        b0m = baseline_b0(reg, al)
+        b1m = baseline_b1(reg, s.landmarks, al, neutral_landmarks=subject.neutral.landmarks)
+        base = {}
+        for name, mesh in (("B0", b0m), ("B1", b1m)):
+            base[name] = fit_metrics(mesh, s, face_mask=reg.face_mask,
+                                     fitted_landmarks=subject.landmarks_on(mesh.vertices), scan_landmarks=s.landmarks)
+        je = f.jaw_effective
+        aus = au_intensities(f.activations, subject.muscle_names, JawPose(float(je[0]), float(je[1]), float(je[2])))
+        notes = list(al.notes)
+        if f.status != "successful":
+            notes.append(f"the last inner solve ended with '{f.status}' (see solver.outer_iterations)")
+        return ExpressionFit(
+            stem=_stem(s), scan=s, alignment=al, fit=f, fitted=fitted, fitted_landmarks=flm,
+            activations=dict(zip(subject.muscle_names, map(float, f.activations))), au_intensities=aus,
+            metrics=metrics, baselines=base, baseline_meshes={"B0": b0m, "B1": b1m},
+            muscle_names=subject.muscle_names, backend=subject.backend, options=opt, notes=notes,
+            face_mask=np.asarray(reg.face_mask, bool),
+        )
+
     for b0 in range(0, len(loaded), bs):
         batch = loaded[b0 : b0 + bs]
-        aligns, inputs = [], []
-        for s in batch:
-            say(f"aligning {_stem(s)} to the neutral")
-            al = align_scans(s, subject.neutral, fixed_index=subject.neutral_index)
-            aligns.append(al)
-            inputs.append(scan_fit_inputs(subject, s, al.transform, opt.n_points, seed=opt.seed))
+        say("aligning " + ", ".join(_stem(s) for s in batch) + " to the neutral")
+        # independent per-scan work runs on the outer thread pool (both cores on a 2-core CPU)
+        prepared = thread_map(prepare, batch, outer=True)
+        aligns = [a for a, _ in prepared]
+        inputs = [i for _, i in prepared]
         say(f"fitting {len(batch)} scan(s)")
         fits = fit_points(subject.forward, subject.response, subject.fit_ids, subject.face_triangles, inputs,
                           subject.landmark_tri, subject.landmark_bary, opt, progress=say)
-        for s, al, f, inp in zip(batch, aligns, fits, inputs):
-            Ti = al.transform.inverse()
-            fitted = TriMesh(Ti.apply(f.skin), tris, validate=False)
-            flm = subject.landmarks_on(fitted.vertices)
-            metrics = fit_metrics(fitted, s, face_mask=reg.face_mask, fitted_landmarks=flm, scan_landmarks=s.landmarks)
-            b0m = baseline_b0(reg, al)
-            b1m = baseline_b1(reg, s.landmarks, al, neutral_landmarks=subject.neutral.landmarks)
-            base = {}
-            for name, mesh in (("B0", b0m), ("B1", b1m)):
-                base[name] = fit_metrics(mesh, s, face_mask=reg.face_mask,
-                                         fitted_landmarks=subject.landmarks_on(mesh.vertices), scan_landmarks=s.landmarks)
-            je = f.jaw_effective
-            aus = au_intensities(f.activations, subject.muscle_names, JawPose(float(je[0]), float(je[1]), float(je[2])))
-            notes = list(al.notes)
-            if f.status != "successful":
-                notes.append(f"the last inner solve ended with '{f.status}' (see solver.outer_iterations)")
-            ef = ExpressionFit(
-                stem=_stem(s), scan=s, alignment=al, fit=f, fitted=fitted, fitted_landmarks=flm,
-                activations=dict(zip(subject.muscle_names, map(float, f.activations))), au_intensities=aus,
-                metrics=metrics, baselines=base, baseline_meshes={"B0": b0m, "B1": b1m},
-                muscle_names=subject.muscle_names, backend=subject.backend, options=opt, notes=notes,
-                face_mask=np.asarray(reg.face_mask, bool),
-            )
+        say(f"evaluating {len(batch)} fit(s) and the baselines")
+        for ef in thread_map(evaluate, list(zip(batch, aligns, fits)), outer=True):
             results.append(ef)
             if on_result is not None:
                 on_result(ef)
