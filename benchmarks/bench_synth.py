@@ -12,6 +12,9 @@ region, 9,409 vertices, with its teeth):
   default sweep counts;
 * convergence: the largest vertex difference (mm) between the default synthesis and one with
   ten times more sweeps, for a smile + jaw opening;
+* with ``--sweeps 32/8,128/8,...``: the time-accuracy curve of the quasi-static solve, each
+  ``muscle/skin`` sweep count timed and compared (max, 99th percentile and mean vertex
+  distance, mm) with a 3,000 / 400-sweep reference solve;
 * batch throughput with ``jax.vmap`` (syntheses per second at batch 8 and 32);
 * a forward-mode Jacobian over all controls and the jaw pitch (``jax.jacfwd``), the operation
   the fitter repeats.
@@ -49,6 +52,9 @@ def main():
     ap.add_argument("--dtype", default="float32", choices=["float32", "float64"])
     ap.add_argument("--repeat", type=int, default=7)
     ap.add_argument("--no-jacobian", action="store_true")
+    ap.add_argument("--sweeps", default="",
+                    help="comma-separated muscle/skin sweep counts for the time-accuracy curve, "
+                         "e.g. 32/8,128/8,256/16 (each compiles once)")
     args = ap.parse_args()
     if args.dtype == "float64":
         jax.config.update("jax_enable_x64", True)
@@ -79,6 +85,21 @@ def main():
                                          skin=10 * rig.skin.iterations), a, jaw)
     res["convergence_mm_vs_10x_sweeps"] = float(jnp.abs(x - ref).max())
     res["motion_mm"] = float(jnp.linalg.norm(x - rig.rest, axis=1).max())
+    if args.sweeps:
+        import numpy as np
+
+        deep = np.asarray(synthesize(rig.with_iterations(muscles=3000, skin=400), a, jaw))
+        curve = []
+        for item in args.sweeps.split(","):
+            m_, s_ = (int(v) for v in item.split("/"))
+            r = rig.with_iterations(muscles=m_, skin=s_)
+            _, mn, _ = _time(synthesize, r, a, jaw, repeat=max(3, args.repeat // 2))
+            d = np.linalg.norm(np.asarray(synthesize(r, a, jaw)) - deep, axis=1)
+            curve.append(dict(muscle_sweeps=m_, skin_sweeps=s_, ms_min=mn, max_mm=float(d.max()),
+                              p99_mm=float(np.percentile(d, 99)), mean_mm=float(d.mean())))
+            print(f"sweeps {m_:>4}/{s_:<4} {mn:7.1f} ms   vs 3000/400 sweeps: max {d.max():.3f}  "
+                  f"p99 {np.percentile(d, 99):.3f}  mean {d.mean():.4f} mm", flush=True)
+        res["time_accuracy"] = curve
     for B in (8, 32):
         A = jnp.tile(a[None], (B, 1)) * jnp.linspace(0.2, 1.0, B, dtype=dt)[:, None]
         P = jnp.full((B,), jaw.pitch_deg, dt)
@@ -93,6 +114,8 @@ def main():
         res.update(jacfwd_params=int(theta.shape[0]), jacfwd_compile_s=c, jacfwd_ms_min=mn)
     width = max(len(k) for k in res)
     for k, v in res.items():
+        if isinstance(v, list):
+            continue
         print(f"{k:<{width}}  {v:.4g}" if isinstance(v, float) else f"{k:<{width}}  {v}")
     out = Path(__file__).resolve().parent / "results"
     out.mkdir(exist_ok=True)
