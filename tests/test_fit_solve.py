@@ -241,3 +241,30 @@ def test_batch_fit_matches_single_fits_in_input_order(round_trip):
     # the neutral scan of the batch is fitted with (almost) nothing contracted and the jaw closed
     assert max(rest_fit.activations.values()) < 0.05 and abs(rest_fit.jaw["pitch_deg"]) < 0.5
     assert rest_fit.metrics.scan_to_fit["all"].mean < 0.1
+
+
+def test_batched_inner_solve_lax_map_equals_vmap(round_trip):
+    """The CPU batch mode (``lax.map``: each solve stops at its own convergence) gives the
+    same solutions as ``vmap`` (every member runs the batch's largest step count)."""
+    import jax
+
+    from jaxface.fit.solve import _stack, batch_mode, make_priors, solve_inner
+
+    subject, res, _, opt = round_trip[:4]
+    assert batch_mode() == ("map" if jax.default_backend() == "cpu" else "vmap")
+    pri = make_priors(subject.muscle_names, opt)
+    y = res.fit.y
+    y_far = dict(y)
+    y_far["jaw"] = y["jaw"] + 3.0                        # a start that needs more steps
+    Y0 = _stack([dict(y), y_far])
+    P = _stack([res.fit.points, res.fit.points])
+    out_map = solve_inner(Y0, P, pri, opt, mode="map")
+    out_vmap = solve_inner(Y0, P, pri, opt, mode="vmap")
+    steps_map, steps_vmap = out_map[2], out_vmap[2]
+    np.testing.assert_array_equal(steps_map, steps_vmap)    # each member's own step count
+    assert steps_map[1] > steps_map[0]
+    for a, b in zip(jax.tree_util.tree_leaves(out_map[0]), jax.tree_util.tree_leaves(out_vmap[0])):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-4)
+    np.testing.assert_allclose(out_map[3], out_vmap[3], rtol=1e-4, atol=1e-8)   # costs
+    with pytest.raises(Exception, match="map"):
+        solve_inner(Y0, P, pri, opt, mode="pmap")

@@ -16,7 +16,7 @@ from jaxface.cli import EXIT_USAGE
 def synth_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("synth")
     proc = run_cli("synth", "--au", "AU26=0.5", "--muscle", "zygomaticus_major_L=0.8",
-                   "--name", "custom", "--emotion", "surprise", "--out", out, timeout=600)
+                   "--name", "custom", "--emotion", "surprise", "--sweeps", "48/6", "--out", out, timeout=600)
     return out, proc
 
 
@@ -46,7 +46,7 @@ def test_synth_writes_meshes_landmarks_json_and_pictures(synth_run):
 
     with jax.enable_x64(False):
         head = generic_head()
-        rig = build_rig(head)
+        rig = build_rig(head).with_iterations(muscles=48, skin=6)  # --sweeps 48/6
         a, jaw, puff = aus_to_controls({"AU26": 0.5}, rig.muscle_names)
         a[list(rig.muscle_names).index("zygomaticus_major_L")] = 0.8
         x = np.asarray(synthesize(rig, a, JawPose(jaw.pitch_deg, jaw.yaw_deg, jaw.protrusion_mm), puff))
@@ -74,7 +74,14 @@ def test_synth_bad_inputs(tmp_path, capsys):
     assert code == EXIT_USAGE and "[0, 1]" in err
     code, err = run_main(capsys, "synth", "--au", "AU12", "--backend", "fem", "--out", tmp_path / "d")
     assert code == EXIT_USAGE and "pbd" in err
-    assert not any((tmp_path / s).exists() for s in "abcd")
+    code, err = run_main(capsys, "synth", "--au", "AU12", "--sweeps", "64", "--out", tmp_path / "e")
+    assert code == EXIT_USAGE and "MUSCLE/SKIN" in err
+    code, err = run_main(capsys, "synth", "--au", "AU12", "--sweeps", "0/8", "--out", tmp_path / "f")
+    assert code == EXIT_USAGE and "at least 1" in err
+    code, err = run_main(capsys, "synth", "--au", "AU12", "--sweeps", "64/8", "--backend", "ltw",
+                         "--out", tmp_path / "g")
+    assert code == EXIT_USAGE and "ltw" in err
+    assert not any((tmp_path / s).exists() for s in "abcdefg")
 
 
 def test_parse_muscles_names_the_controls():

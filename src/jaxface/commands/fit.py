@@ -8,7 +8,7 @@ Contract (other tools call it; keep it stable)::
                 --out DIR [--pictures]
 
 Landmark files default to the scan path with suffix ``.lm3``. Several ``--scan`` options fit a
-batch (solved together with ``jax.vmap``) with a progress bar. Per scan it writes
+batch (solved together in one compiled call) with a progress bar. Per scan it writes
 ``DIR/<scan-stem>.json`` (keys: ``activations``, ``au_intensities``, ``jaw``, ``rigid``,
 ``metrics``, ``baselines``, ``solver``, ``frame``; see :class:`jaxface.fit.pipeline.ExpressionFit`)
 and ``DIR/<scan-stem>.fitted.ply`` (the fitted skin in the scan's own frame, mm); with
@@ -160,7 +160,7 @@ def register(app: typer.Typer) -> None:
         levels: int = typer.Option(4, "--levels", min=1, help="Activation knots of the rig's reduced model."),
         pitch_knots: int = typer.Option(12, "--pitch-knots", min=3, help="Jaw pitch knots of the reduced model."),
         batch_size: Optional[int] = typer.Option(  # noqa: UP007
-            None, "--batch-size", min=1, help="Scans solved together (jax.vmap); default all."),
+            None, "--batch-size", min=1, help="Scans solved together in one compiled call (lax.map on the CPU, vmap on a GPU); default all."),
         quiet: bool = typer.Option(False, "--quiet", "-q", help="Only print errors."),
     ):
         """Fit muscle activations, jaw pose and a rigid correction to expression scans of one

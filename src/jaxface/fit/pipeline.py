@@ -619,7 +619,8 @@ def fit_expressions(
         options: :class:`~jaxface.fit.solve.FitOptions`.
         scan_landmarks: optional landmarks per scan (override the scans' own).
         progress: called with short texts.
-        batch_size: scans solved together with ``jax.vmap`` (default: all). The alignment
+        batch_size: scans solved together in one compiled call (default: all;
+            :func:`~jaxface.fit.solve.solve_inner`). The alignment
             and the evaluation (metrics, baselines) of a batch's scans run concurrently on the
             outer thread pool (:mod:`jaxface._parallel`), so a batch costs less per scan than
             single fits.

@@ -62,9 +62,13 @@ changes. At the end the KKT conditions of the box hold.
 
 Jaw start: by default at the pitch whose reduced-model landmarks best match the scan's
 landmarks; ``FitOptions.jaw_starts`` gives an explicit multi-start instead (all starts in
-one vmapped batch, the best final cost wins). Optionally (``FitOptions.exact_steps``) a final
+one batch, the best final cost wins). Optionally (``FitOptions.exact_steps``) a final
 Levenberg-Marquardt solve runs through the exact rig's own forward-mode Jacobian. Batches of
-scans are solved together with ``jax.vmap`` (padded, zero-weight residuals).
+scans (and starts) are solved in one compiled call (padded, zero-weight residuals): on the CPU
+with ``jax.lax.map``, one solve after the other, each stopping at its own convergence; on an
+accelerator with ``jax.vmap``, all in parallel. (A ``vmap`` of a while loop runs every member
+for the largest number of steps in the batch; on the 2-core CPU a batch of 11 Bosphorus scans
+took 5.5 s per scan with ``vmap`` and 3.3 s with ``lax.map``, same fits.)
 
 Status is reported honestly (:class:`PointFit.status`): ``"successful"`` only when the last
 inner solve met optimistix's tolerance and the active set is stable; otherwise the optimistix
@@ -131,7 +135,7 @@ class FitOptions:
         rtol, atol: optimistix convergence tolerances of the inner solves.
         init_activation: the activations' starting value (``a(z0)``).
         jaw_starts: starting jaw pitches (deg) of a multi-start: every start runs the
-            whole fit (in the same vmapped batch, so nothing is compiled twice) and the one
+            whole fit (in the same batch, so nothing is compiled twice) and the one
             with the lowest final robust point-to-plane cost on the exact skin wins.
             ``None`` (default): one start per scan, at the pitch whose reduced-model
             landmarks (activations 0) best match the scan's landmark targets, searched on a
@@ -732,15 +736,28 @@ def _solve_one(y0, pts, pri, *, max_steps, rtol, atol):
     return y, sol.result._value, sol.stats["num_steps"], _cost(y, (pts, pri)), _cost(y0, (pts, pri)), a, g
 
 
+def batch_mode() -> str:
+    """How :func:`solve_inner` runs a batch: ``"map"`` (``jax.lax.map``, sequential, each
+    solve stops at its own convergence) on the CPU, ``"vmap"`` (parallel) on accelerators."""
+    return "map" if jax.default_backend() == "cpu" else "vmap"
+
+
 @functools.lru_cache(maxsize=16)
-def _batched_solver(max_steps: int, rtol: float, atol: float):
+def _batched_solver(max_steps: int, rtol: float, atol: float, mode: str = "vmap"):
     fn = functools.partial(_solve_one, max_steps=max_steps, rtol=rtol, atol=atol)
+    if mode == "map":
+        return eqx.filter_jit(lambda y, p, pri: jax.lax.map(lambda yp: fn(yp[0], yp[1], pri), (y, p)))
     return eqx.filter_jit(jax.vmap(fn, in_axes=(0, 0, None)))
 
 
-def solve_inner(y0, points: PointSet, priors: Priors, options: FitOptions):
-    """Batched Levenberg-Marquardt solves (``jax.vmap`` over the leading axis of ``y0`` and
-    ``points``), ``throw=False``.
+def solve_inner(y0, points: PointSet, priors: Priors, options: FitOptions, *, mode: str | None = None):
+    """Batched Levenberg-Marquardt solves over the leading axis of ``y0`` and ``points``,
+    ``throw=False``, in one compiled call.
+
+    Args:
+        y0, points: batched parameters and residual data; priors: shared.
+        options: :class:`FitOptions` (``max_steps``, ``rtol``, ``atol``).
+        mode: ``"map"`` (``jax.lax.map``) or ``"vmap"``; default :func:`batch_mode`.
 
     Returns:
         ``(y, result (B,) int, steps (B,), cost (B,), cost0 (B,), a (B, M), grad_a (B, M))``;
@@ -748,7 +765,10 @@ def solve_inner(y0, points: PointSet, priors: Priors, options: FitOptions):
         :func:`result_name`); ``grad_a`` is the gradient of the cost with respect to the
         activations at the solution (mm^2 per unit activation).
     """
-    fn = _batched_solver(int(options.max_steps), float(options.rtol), float(options.atol))
+    mode = batch_mode() if mode is None else mode
+    if mode not in ("map", "vmap"):
+        raise FitError(f"solve_inner mode {mode!r}: use 'map' or 'vmap'.")
+    fn = _batched_solver(int(options.max_steps), float(options.rtol), float(options.atol), mode)
     y, res, steps, cost, cost0, a, g = fn(y0, points, priors)
     return (y, np.asarray(res), np.asarray(steps), np.asarray(cost), np.asarray(cost0), np.asarray(a),
             np.asarray(g))
@@ -1067,7 +1087,7 @@ def fit_points(
     centre = np.asarray(response.rest).mean(axis=0)
     priors = make_priors(names, opt)
     S = len(scans)
-    # runs: (scan index, start pitch), all solved together in one vmapped batch
+    # runs: (scan index, start pitch), all solved in one batched call (solve_inner)
     if opt.jaw_starts is None:
         runs = [(s, _landmark_pitch(response, lm_loc, landmark_bary, sc)) for s, sc in enumerate(scans)]
     else:
