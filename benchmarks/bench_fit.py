@@ -10,7 +10,7 @@ Run from the repository root (needs the shared data: ``JAXFACE_SHARED`` or ``../
 Measures (units mm, degrees, seconds):
 
 * per subject: the subject build (template registration, rig, compilation, reduced model);
-* per scan (all codes, both subjects; fitted as one ``jax.vmap`` batch per subject): the
+* per scan (all codes, both subjects; fitted as one batch per subject, ``jax.lax.map`` on the CPU): the
   issue-7 error of the fitted skin against ``<stem>.truth.ply`` over the evaluation region
   (:func:`jaxface.fit.evaluation.evaluate_against_truth`), the same for B0 and B1, the ratio
   B0 / fit, scan-to-fit metrics, solver status and steps, jaw pose, and the AU readout: the

@@ -694,7 +694,7 @@ def fit_expressions(
 
     for b0 in range(0, len(loaded), bs):
         batch = loaded[b0 : b0 + bs]
-        say("aligning " + ", ".join(_stem(s) for s in batch) + " to the neutral")
+        say(f"aligning {_stem(batch[0]) if len(batch) == 1 else f'{len(batch)} scans'} to the neutral")
         # independent per-scan work runs on the outer thread pool (both cores on a 2-core CPU)
         prepared = thread_map(prepare, batch, outer=True)
         aligns = [a for a, _ in prepared]
