@@ -33,6 +33,7 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 
 def _time(fn, *args, repeat=7):
@@ -86,8 +87,6 @@ def main():
     res["convergence_mm_vs_10x_sweeps"] = float(jnp.abs(x - ref).max())
     res["motion_mm"] = float(jnp.linalg.norm(x - rig.rest, axis=1).max())
     if args.sweeps:
-        import numpy as np
-
         deep = np.asarray(synthesize(rig.with_iterations(muscles=3000, skin=400), a, jaw))
         curve = []
         for item in args.sweeps.split(","):

@@ -126,11 +126,10 @@ class Subject:
 
     def landmarks_on(self, vertices) -> Any:
         """The rig's landmarks on a skin with the rig's topology (Landmarks, mm)."""
-        from ..landmarks import Landmarks
+        from ..io.scanner import SkinLandmarks
 
-        v = np.asarray(vertices, np.float64)
-        pos = np.einsum("kc,kcd->kd", self.landmark_bary, v[self.triangles[self.landmark_tri]])
-        return Landmarks(self.landmark_names, pos)
+        bound = SkinLandmarks(self.landmark_names, self.landmark_tri, self.landmark_bary, self.triangles)
+        return bound.landmarks(vertices)
 
 
 def _warp_teeth(template, registration, radius_mm: float = 60.0):
