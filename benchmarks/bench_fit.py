@@ -12,8 +12,10 @@ Measures (units mm, degrees, seconds):
 * per subject: the subject build (template registration, rig, compilation, reduced model);
 * per scan (all codes, both subjects; fitted as one batch per subject, ``jax.lax.map`` on the CPU): the
   issue-7 error of the fitted skin against ``<stem>.truth.ply`` over the evaluation region
-  (:func:`jaxface.fit.evaluation.evaluate_against_truth`), the same for B0 and B1, the ratio
-  B0 / fit, scan-to-fit metrics, solver status and steps, jaw pose, and the AU readout: the
+  (:func:`jaxface.fit.evaluation.evaluate_against_truth`), the same for B0 and B1, and for B2
+  (Erdoğdu 2010, :func:`jaxface.fit.baselines.baseline_b2`: the scan's AU transferred from the
+  other subject's neutral and same-code scan, magnitude fitted to the scan) on the single-AU
+  scans it applies to, the ratio B0 / fit, scan-to-fit metrics, solver status and steps, jaw pose, and the AU readout: the
   rank of each AU named by the file's code among the fitted bilateral AUs (and the side for
   ``LFAU_12L``);
 * the neutral scans: registration error (B0 of ``N_N``) against the truth;
@@ -62,6 +64,26 @@ def _stats(d):
     return {k: (None if v is None else float(v)) for k, v in d.to_dict().items()} if hasattr(d, "to_dict") else d
 
 
+def _b2(truth, subject, r, stem: str, subject_id: str):
+    """B2 for one scan (None where it does not apply or no other subject has the code)."""
+    from jaxface.fit.baselines import b2_action_unit, baseline_b2
+    from jaxface.fit.evaluation import evaluate_against_truth
+
+    au = b2_action_unit(stem)
+    if au is None:
+        return None
+    code = stem[len(subject_id) + 1:]
+    for src in truth.subjects():
+        if src != subject_id and f"{src}_{code}" in truth.records:
+            t = time.perf_counter()
+            b2 = baseline_b2(subject.registration, r.scan, r.alignment,
+                             truth.scan(truth.neutral_stem(src)), truth.scan(f"{src}_{code}"), au)
+            ev = evaluate_against_truth(b2.mesh, truth, stem)
+            return {"source": src, "au": au, "magnitude": b2.magnitude, "mean": ev.mean,
+                    "error": ev.to_dict()["error"], "seconds": time.perf_counter() - t}
+    return None
+
+
 def bench_subject(truth, subject_id: str, opt, *, single: bool) -> dict:
     from jaxface.fit.evaluation import evaluate_against_truth
     from jaxface.fit.pipeline import fit_expressions, prepare_subject
@@ -97,10 +119,12 @@ def bench_subject(truth, subject_id: str, opt, *, single: bool) -> dict:
         b0 = evaluate_against_truth(r.baseline_meshes["B0"], truth, stem)
         b1 = evaluate_against_truth(r.baseline_meshes["B1"], truth, stem)
         exp = CODE_AUS.get(rec.code, [])
+        b2 = _b2(truth, S, r, stem, subject_id)
         row = {
             "stem": stem, "code": rec.code, "n_region": ev.n_region,
             "fit": ev.to_dict()["error"], "B0": b0.to_dict()["error"], "B1": b1.to_dict()["error"],
-            "fit_mean": ev.mean, "B0_mean": b0.mean, "B1_mean": b1.mean,
+            "fit_mean": ev.mean, "B0_mean": b0.mean, "B1_mean": b1.mean, "B2": b2,
+            "B2_mean": None if b2 is None else b2["mean"],
             "ratio_B0_over_fit": b0.mean / ev.mean if ev.mean > 0 else None,
             "scan_to_fit_mean": r.metrics.scan_to_fit["all"].mean,
             "status": r.status, "steps": r.fit.steps, "jaw": r.jaw,
@@ -211,10 +235,11 @@ def main() -> None:
               f"{r['build']['response_s']:.1f})")
         for k, v in r["timing"].items():
             print(f"  time {k}: " + ", ".join(f"{a}={b:.2f}" if isinstance(b, float) else f"{a}={b}" for a, b in v.items()))
-        print(f"{'scan':22s} {'fit':>6s} {'B0':>6s} {'B1':>6s} {'B0/fit':>6s} {'scan':>5s}  status        "
+        print(f"{'scan':22s} {'fit':>6s} {'B0':>6s} {'B1':>6s} {'B2':>6s} {'B0/fit':>6s} {'scan':>5s}  status        "
               f"{'pitch':>5s}  AU ranks / top AUs")
         for s in r["scans"]:
-            print(f"{s['stem']:22s} {s['fit_mean']:6.3f} {s['B0_mean']:6.3f} {s['B1_mean']:6.3f} "
+            b2s = "     -" if s["B2_mean"] is None else f"{s['B2_mean']:6.3f}"
+            print(f"{s['stem']:22s} {s['fit_mean']:6.3f} {s['B0_mean']:6.3f} {s['B1_mean']:6.3f} {b2s} "
                   f"{(s['ratio_B0_over_fit'] or 0):6.2f} {s['scan_to_fit_mean']:5.2f}  {s['status'][:13]:13s} "
                   f"{s['jaw']['pitch_deg']:5.1f}  {s['au_ranks']} {[(k, round(v, 2)) for k, v in s['top_aus'][:4]]}"
                   + (f" 12L/12R {s['au12_sides']['AU12L']:.2f}/{s['au12_sides']['AU12R']:.2f}"
@@ -228,6 +253,9 @@ def main() -> None:
             "mean_fit": float(np.mean([s["fit_mean"] for s in allex])),
             "mean_B0": float(np.mean([s["B0_mean"] for s in allex])),
             "mean_B1": float(np.mean([s["B1_mean"] for s in allex])),
+            "B2_scans": {s["stem"]: {"fit": s["fit_mean"], "B2": s["B2_mean"]} for s in allex if s["B2_mean"] is not None},
+            "mean_fit_on_B2_scans": float(np.mean([s["fit_mean"] for s in allex if s["B2_mean"] is not None] or [np.nan])),
+            "mean_B2": float(np.mean([s["B2_mean"] for s in allex if s["B2_mean"] is not None] or [np.nan])),
             "n_fit_le_1mm": int(sum(s["fit_mean"] <= 1.0 for s in allex)),
             "n_2x_better_than_B0": int(sum((s["ratio_B0_over_fit"] or 0) >= 2.0 for s in allex)),
             "n_expressions": len(allex),

@@ -3,6 +3,7 @@
 Run from the repository root::
 
     JAXFACE_SHARED=../shared python benchmarks/bench_synth.py [--dtype float32|float64] [--repeat 7]
+        [--sweeps 32/8,256/16,...] [--expressions] [--no-jacobian]
 
 Prints a table and writes ``benchmarks/results/bench_synth.json``. Measures (ICT-FaceKit face
 region, 9,409 vertices, with its teeth):
@@ -15,6 +16,10 @@ region, 9,409 vertices, with its teeth):
 * with ``--sweeps 32/8,128/8,...``: the time-accuracy curve of the quasi-static solve, each
   ``muscle/skin`` sweep count timed and compared (max, 99th percentile and mean vertex
   distance, mm) with a 3,000 / 400-sweep reference solve;
+* with ``--expressions``: the same distances to a 3,000 / 400-sweep solve (max and 99th
+  percentile, mm) for each of the six emotion presets, a jaw opening (AU26) and every control
+  at 1 with the jaw at 18 degrees, at the default sweeps and at each ``--sweeps`` count: how
+  converged the solve is beyond the one benchmark expression;
 * batch throughput with ``jax.vmap`` (syntheses per second at batch 8 and 32);
 * a forward-mode Jacobian over all controls and the jaw pitch (``jax.jacfwd``), the operation
   the fitter repeats.
@@ -48,11 +53,44 @@ def _time(fn, *args, repeat=7):
     return compile_s, min(ts), statistics.median(ts)
 
 
+def _expression_convergence(rig, sweeps: str, dt) -> dict:
+    """Distance (mm) of the solve at each sweep count to a 3000/400-sweep solve, per expression."""
+    from jaxface import facs
+    from jaxface.anatomy.jaw import JawPose
+    from jaxface.anatomy.rig import synthesize
+
+    cases = {}
+    for name in sorted(facs.EMOTIONS):
+        a, jaw, _ = facs.emotion_controls(name, rig.muscle_names)
+        cases[name] = (np.asarray(a), float(jaw.pitch_deg))
+    cases["AU26"] = (np.zeros(rig.n_controls), 12.0)
+    cases["all_controls_1_jaw_18"] = (np.ones(rig.n_controls), 18.0)
+    A = jnp.asarray(np.stack([c[0] for c in cases.values()]), dt)
+    P = jnp.asarray([c[1] for c in cases.values()], dt)
+
+    def run(r):
+        return np.asarray(jax.jit(jax.vmap(lambda a, p: synthesize(r, a, JawPose(p))))(A, P))
+
+    ref = run(rig.with_iterations(muscles=3000, skin=400))
+    counts = [(rig.muscles.iterations, rig.skin.iterations)]
+    counts += [tuple(int(v) for v in item.split("/")) for item in sweeps.split(",") if item]
+    out = {}
+    print(f"{'distance to 3000/400, max / p99 mm':36s}" + "".join(f"{m}/{s}".rjust(14) for m, s in counts))
+    cols = [np.linalg.norm(run(rig.with_iterations(muscles=m, skin=s)) - ref, axis=2) for m, s in counts]
+    for i, name in enumerate(cases):
+        out[name] = {f"{m}/{s}": {"max_mm": float(d[i].max()), "p99_mm": float(np.percentile(d[i], 99))}
+                     for (m, s), d in zip(counts, cols)}
+        print(f"{name:36s}" + "".join(f"{d[i].max():6.2f} / {np.percentile(d[i], 99):5.2f}" for d in cols))
+    return out
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--dtype", default="float32", choices=["float32", "float64"])
     ap.add_argument("--repeat", type=int, default=7)
     ap.add_argument("--no-jacobian", action="store_true")
+    ap.add_argument("--expressions", action="store_true",
+                    help="also measure the convergence on the six emotions, AU26 and all controls at 1")
     ap.add_argument("--sweeps", default="",
                     help="comma-separated muscle/skin sweep counts for the time-accuracy curve, "
                          "e.g. 32/8,128/8,256/16 (each compiles once)")
@@ -99,6 +137,8 @@ def main():
             print(f"sweeps {m_:>4}/{s_:<4} {mn:7.1f} ms   vs 3000/400 sweeps: max {d.max():.3f}  "
                   f"p99 {np.percentile(d, 99):.3f}  mean {d.mean():.4f} mm", flush=True)
         res["time_accuracy"] = curve
+    if args.expressions:
+        res["expressions"] = _expression_convergence(rig, args.sweeps, dt)
     for B in (8, 32):
         A = jnp.tile(a[None], (B, 1)) * jnp.linspace(0.2, 1.0, B, dtype=dt)[:, None]
         P = jnp.full((B,), jaw.pitch_deg, dt)
@@ -113,7 +153,7 @@ def main():
         res.update(jacfwd_params=int(theta.shape[0]), jacfwd_compile_s=c, jacfwd_ms_min=mn)
     width = max(len(k) for k in res)
     for k, v in res.items():
-        if isinstance(v, list):
+        if isinstance(v, (list, dict)):
             continue
         print(f"{k:<{width}}  {v:.4g}" if isinstance(v, float) else f"{k:<{width}}  {v}")
     out = Path(__file__).resolve().parent / "results"

@@ -10,7 +10,13 @@ import scipy.sparse as sp
 import trimesh
 
 from jaxface.errors import FitError, LandmarkError
-from jaxface.fit.baselines import baseline_b0, baseline_b1, expression_landmark_displacements
+from jaxface.fit.baselines import (
+    b2_action_unit,
+    baseline_b0,
+    baseline_b1,
+    baseline_b2,
+    expression_landmark_displacements,
+)
 from jaxface.fit.metrics import SurfaceIndex
 from jaxface.fit.register import (
     RegisterOptions,
@@ -271,8 +277,9 @@ def test_ict_template_registration_bs901(truth_set):
 
 @pytest.mark.data
 def test_baselines_on_all_scans(truth_set, head_registrations):
-    """B0 and B1 on every bs900/bs901 expression scan (true rigid alignment from truth.json),
-    against the truth meshes; B0 is checked against an independent reference."""
+    """B0 and B1 on every bs900/bs901 expression scan, and B2 where it applies (true rigid
+    alignment from truth.json), against the truth meshes; B0 is checked against an
+    independent reference."""
     from jaxface.fit.evaluation import evaluate_against_truth, evaluation_region, ict_template
 
     rows = []
@@ -285,7 +292,16 @@ def test_baselines_on_all_scans(truth_set, head_registrations):
             lm = truth_set.scan(stem).landmarks
             e0 = evaluate_against_truth(baseline_b0(reg, T), truth_set, stem)
             e1 = evaluate_against_truth(baseline_b1(reg, lm, T), truth_set, stem)
-            rows.append((stem, e0.n_region, e0.mean, e1.mean))
+            # B2: the same AU transferred from the other subject's scans (Erdoğdu 2010)
+            au = b2_action_unit(stem)
+            e2 = m2 = None
+            if au is not None:
+                src = "bs901" if subj == "bs900" else "bs900"
+                code = stem[len(subj) + 1:]
+                b2 = baseline_b2(reg, truth_set.scan(stem), T, truth_set.scan(truth_set.neutral_stem(src)),
+                                 truth_set.scan(f"{src}_{code}"), au)
+                e2, m2 = evaluate_against_truth(b2.mesh, truth_set, stem).mean, b2.magnitude
+            rows.append((stem, e0.n_region, e0.mean, e1.mean, e2, m2))
             if subj == "bs900" and stem.endswith(("LFAU_26_0", "UFAU_2_0")):
                 # independent reference: truth expression vertices -> truth neutral surface
                 # (trimesh), the neutral taken into the expression frame with the truth motion
@@ -296,11 +312,49 @@ def test_baselines_on_all_scans(truth_set, head_registrations):
                 nm = trimesh.Trimesh(nv[skin.ict_ids], skin.mesh.triangles, process=False)
                 _, dref, _ = trimesh.proximity.closest_point(nm, truth_set.truth_vertices(stem)[m])
                 assert abs(e0.mean - dref.mean()) < 0.15, (stem, e0.mean, dref.mean())
-    print("\nscan                    n_region  B0 mean  B1 mean (mm)")
+    print("\nscan                    n_region  B0 mean  B1 mean  B2 mean (m) (mm)")
     for r in rows:
-        print(f"{r[0]:22s} {r[1]:8d} {r[2]:8.3f} {r[3]:8.3f}")
+        b2s = "" if r[4] is None else f" {r[4]:8.3f} ({r[5]:.2f})"
+        print(f"{r[0]:22s} {r[1]:8d} {r[2]:8.3f} {r[3]:8.3f}{b2s}")
     b0 = np.array([r[2] for r in rows])
     b1 = np.array([r[3] for r in rows])
     assert len(rows) == 20
     assert np.all(b0 > 0.4)  # every expression moves its region by > 1 mm
     assert b1.mean() < b0.mean()
+    with_b2 = [r for r in rows if r[4] is not None]
+    assert len(with_b2) == 12  # UFAU_1, _2, _4, LFAU_12, _12L, _20 of both subjects
+    for r in with_b2:
+        assert r[4] < 0.8 * r[2], r   # the transferred AU explains much of the motion
+        assert 0.3 < r[5] < 1.7, r    # at about the source's magnitude (same ICT expression)
+
+
+def test_b2_action_unit_reads_the_scan_name():
+    assert b2_action_unit("bs000_LFAU_12L_0") == "12L"
+    assert b2_action_unit("bs000_LFAU_12_0.bnt") == "12"
+    assert b2_action_unit("some/dir/bs123_UFAU_4_0.lm3") == "4"
+    assert b2_action_unit("bs000_LFAU_20_0") == "20"
+    # no Erdoğdu layout (AU9, AU26), emotions, combinations, neutral, other names
+    for name in ("bs000_LFAU_9_0", "bs000_LFAU_26_0", "bs000_E_HAPPY_0", "bs000_CAU_A12A25_0",
+                 "bs000_N_N_0", "face.ply"):
+        assert b2_action_unit(name) is None, name
+
+
+@pytest.mark.data
+def test_b2_does_not_depend_on_the_expression_scan_frame(truth_set, head_registrations):
+    """Moving the expression scan by a rigid motion Q (and its alignment accordingly) moves
+    B2's mesh by Q and leaves the fitted magnitude unchanged."""
+    from jaxface.io.preprocess import RigidTransform
+
+    reg = head_registrations["bs900"]
+    stem, ns = "bs900_UFAU_2_0", truth_set.neutral_stem("bs900")
+    T = truth_set.relative_transform(stem, ns)
+    src = (truth_set.scan("bs901_N_N_0"), truth_set.scan("bs901_UFAU_2_0"))
+    a = baseline_b2(reg, truth_set.scan(stem), T, *src, "2")
+    c, s_ = np.cos(0.2), np.sin(0.2)
+    Q = RigidTransform(np.array([[c, 0.0, s_], [0.0, 1.0, 0.0], [-s_, 0.0, c]]), [5.0, -3.0, 12.0])
+    pts = Q.apply(truth_set.scan(stem).points)
+    b = baseline_b2(reg, pts, T.compose(Q.inverse()), *src, "2")
+    assert abs(a.magnitude - b.magnitude) < 2e-3
+    np.testing.assert_allclose(b.mesh.vertices, Q.apply(a.mesh.vertices), atol=0.02)
+    fixed = baseline_b2(reg, pts, T.compose(Q.inverse()), *src, "2", magnitude=0.0)
+    np.testing.assert_allclose(fixed.mesh.vertices, Q.apply(baseline_b0(reg, T).vertices), atol=1e-6)

@@ -866,13 +866,19 @@ def resample_grid(scan, size: int = 150):
 
 
 def fit_magnitude(animation: Animation, target_points: np.ndarray, *, mask: np.ndarray | None = None,
-                  bounds: tuple[float, float] = (0.0, 2.0)) -> tuple[float, float]:
+                  bounds: tuple[float, float] = (0.0, 2.0), cap_mm: float | None = None) -> tuple[float, float]:
     """Oracle magnitude (baseline B3 of the notes): the ``m`` minimising the mean distance
     from the moved vertices of ``animation`` to the nearest of ``target_points`` (mm, same
     frame), by bounded 1-D search.
 
+    Args:
+        mask: ``(V,)`` bool, the vertices to compare (default ``animation.moved_mask``).
+        bounds: search interval of ``m``.
+        cap_mm: cap each distance at this many mm (robust to vertices where the target has
+            no points, e.g. a range scan's holes and the back of a head); None: no cap.
+
     Returns:
-        ``(m, mean distance at m in mm)``.
+        ``(m, mean (capped) distance at m in mm)``.
     """
     from scipy.optimize import minimize_scalar
 
@@ -883,7 +889,8 @@ def fit_magnitude(animation: Animation, target_points: np.ndarray, *, mask: np.n
     x0, u = animation.neutral[sel], animation._unit_field[sel]
 
     def cost(mm):
-        return float(tree.query(x0 + mm * u)[0].mean())
+        d = tree.query(x0 + mm * u)[0]
+        return float((d if cap_mm is None else np.minimum(d, float(cap_mm))).mean())
 
     r = minimize_scalar(cost, bounds=bounds, method="bounded", options={"xatol": 1e-3})
     return float(r.x), float(r.fun)

@@ -7,7 +7,8 @@ Submodules (NumPy/SciPy at build time; nothing here is on the jit path):
 * :mod:`jaxface.fit.register`: template skin -> neutral scan registration (landmark TPS, then
   Laplacian-regularised non-rigid ICP).
 * :mod:`jaxface.fit.metrics`: point-to-surface and landmark metrics (mm), upper/lower split.
-* :mod:`jaxface.fit.baselines`: B0 (registered neutral) and B1 (landmark TPS warp).
+* :mod:`jaxface.fit.baselines`: B0 (registered neutral), B1 (landmark TPS warp) and B2
+  (Erdoğdu 2010 AU transfer from a source subject).
 * :mod:`jaxface.fit.evaluation`: the issue-7 ground-truth protocol for the shared
   ``bosphorus_style`` data.
 * :mod:`jaxface.fit.solve` (JAX): the inverse solve: activations, jaw pose and a rigid
@@ -36,6 +37,8 @@ _LAZY = {
     "landmark_errors": "jaxface.fit.metrics",
     "baseline_b0": "jaxface.fit.baselines",
     "baseline_b1": "jaxface.fit.baselines",
+    "baseline_b2": "jaxface.fit.baselines",
+    "b2_action_unit": "jaxface.fit.baselines",
     "Template": "jaxface.fit.register",
     "load_truth": "jaxface.fit.evaluation",
     "evaluation_region": "jaxface.fit.evaluation",
