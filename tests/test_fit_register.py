@@ -339,6 +339,12 @@ def test_b2_action_unit_reads_the_scan_name():
         assert b2_action_unit(name) is None, name
 
 
+def test_b2_rejects_a_scan_without_points():
+    reg = _synthetic_registration()
+    with pytest.raises(FitError, match="no valid"):
+        baseline_b2(reg, np.full((10, 3), np.nan), None, None, None, "12")
+
+
 @pytest.mark.data
 def test_b2_does_not_depend_on_the_expression_scan_frame(truth_set, head_registrations):
     """Moving the expression scan by a rigid motion Q (and its alignment accordingly) moves

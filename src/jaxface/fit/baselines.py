@@ -207,14 +207,17 @@ def baseline_b2(
     from ..mesh import TriMesh
 
     T = _transform_of(alignment)
-    v, f = mesh_arrays(registration.mesh)
-    target = (TriMesh(v, f, validate=False), registration.landmarks)
-    anim = animate(source_neutral, source_au_scan, target, au, 1.0, **animate_kw)
+    pts = None
     if magnitude is None:
         pts = np.asarray(getattr(expression_scan, "points", expression_scan), dtype=np.float64).reshape(-1, 3)
         pts = pts[np.all(np.isfinite(pts), axis=1)]
         if len(pts) == 0:
-            raise FitError("B2: the expression scan has no valid points to fit the magnitude to.")
+            raise FitError("B2: the expression scan has no valid (finite) points to fit the magnitude "
+                           "to; give a scan with data, or a fixed magnitude=.")
+    v, f = mesh_arrays(registration.mesh)
+    target = (TriMesh(v, f, validate=False), registration.landmarks)
+    anim = animate(source_neutral, source_au_scan, target, au, 1.0, **animate_kw)
+    if pts is not None:
         mask = anim.moved_mask
         fm = getattr(registration, "face_mask", None)
         if fm is not None:
