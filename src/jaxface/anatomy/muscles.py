@@ -132,9 +132,10 @@ class MuscleSystem(eqx.Module):
         rest: ``(Nm, 3)`` rest particle positions, mm.
         skull_rest: ``(S, 3)`` rest positions of the surface points on the skull, mm.
         skull_on_mandible: ``(S,)`` bool.
-        skull_jaw_weight: ``(S,)`` in [0, 1], how much of the jaw motion each skull point
-            follows (1 on the mandible; a smooth ramp on the cranium just below and behind it,
-            the soft tissue that stretches between jaw and neck; 0 elsewhere).
+        skull_jaw_weight: ``(S,)`` in [0, 1], how much of the jaw motion the tissue attached at
+            each skull point follows (default 1 on the mandible and 0 elsewhere; the rig
+            uses :func:`jaxface.anatomy.rig.jaw_follow_weights`: full at the chin, less with
+            distance from it, on the cranium only below the mouth slit).
         fib_ids, fib_w: ``(F, m, 3)`` support ids / weights of the action-line points of every
             fibre (sheet, linear and passive muscles).
         fib_ctrl: ``(F,)`` control index (-1 for passive); fib_cmax: ``(F,)``;

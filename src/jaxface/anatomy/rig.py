@@ -3,7 +3,8 @@
 
 Forward model (thesis sec. 5.7, quasi-static):
 
-1. the jaw pose gives the rigid motion of the mandible and lower teeth (:mod:`.jaw`);
+1. the jaw pose gives the rigid motion of the mandible and lower teeth (:mod:`.jaw`); the
+   tissue attached to the skull follows it with the weights of :func:`jaw_follow_weights`;
 2. the muscles are solved (:func:`jaxface.anatomy.muscles.solve_muscles`): action lines
    re-sampled with the activations, layers deepest first, thesis constraints;
 3. the skin anchors are refreshed from the surface points they are bound to, averaged over the
@@ -36,7 +37,12 @@ from .muscles import MuscleSystem, build_muscle_system, muscle_sweep, solve_musc
 from .skin import SkinSystem, bind_skin, build_skin_system, eyelid_vertices, influence_map, skin_targets, solve_skin
 from .skull import Skull, estimate_skull
 
-__all__ = ["Rig", "RigInfo", "SynthState", "build_rig", "synthesize", "synthesize_state", "simulate"]
+JAW_FOLLOW_MM = (30.0, 100.0)
+"""Default ``(full, reach)`` distances from the chin of the jaw's pull on the soft tissue,
+reference mm (:func:`jaw_follow_weights`)."""
+
+__all__ = ["JAW_FOLLOW_MM", "Rig", "RigInfo", "SynthState", "build_rig", "jaw_follow_weights", "synthesize",
+           "synthesize_state", "simulate"]
 
 
 class RigInfo:
@@ -142,7 +148,8 @@ def build_rig(skin, landmarks=None, skull: Skull | None = None, muscle_map=None,
               *, upper_teeth: TriMesh | None = None, lower_teeth: TriMesh | None = None,
               muscle_iterations: int = 32, skin_iterations: int = 8, footprint_mm: float = 5.0,
               influence_radius: float = 0.15, eyelid_threshold: float = 0.04,
-              bending: bool = False, jaw_blend_mm: float = 40.0):
+              bending: bool = False, jaw_follow_mm: tuple[float, float] = JAW_FOLLOW_MM,
+              jaw_membrane: bool = False):
     """Build the rig of a face.
 
     Args:
@@ -161,10 +168,17 @@ def build_rig(skin, landmarks=None, skull: Skull | None = None, muscle_map=None,
         eyelid_threshold: normalised geodesic distance of the eyelid region (thesis 0.04).
         bending: include the skin's dihedral bending constraints (thesis 0.95; off by default:
             with the tissue footprint they change the result by < 0.1 mm at 3x the cost).
-        jaw_blend_mm: width of the ramp over which cranium points below the mouth slit and
-            next to the mandible (submental skin, cheeks over the ramus) follow part of the
-            jaw motion (reference mm; 0 = rigid split).
-
+        jaw_follow_mm: ``(full, reach)``, reference mm: the tissue attached to the skull
+            follows the jaw fully within ``full`` of the chin, less further away, not at
+            all beyond ``reach`` (:func:`jaw_follow_weights`); ``(0, 0)`` = the thesis's
+            rigid split (mandible fully, cranium not at all).
+        jaw_membrane: the skin under the jaw that is bound to the cranium (no bone moves it)
+            takes the harmonic interpolation of the skin around it instead of following its
+            bound points (:func:`~jaxface.anatomy.skin.membrane_interpolation`). It removes
+            the crease folds left under the chin at wide jaw openings (78 inverted
+            triangles at 18 degrees on the default head, none with it) for animation; off by
+            default because it fits jaw-opening scans less well (0.07 mm on the
+            Bosphorus-style LFAU_26 and E_SURPRISE scans).
     Returns:
         :class:`Rig`.
 
@@ -206,8 +220,17 @@ def build_rig(skin, landmarks=None, skull: Skull | None = None, muscle_map=None,
     pend, sp = build_muscle_system(placed, registry, ci, iterations=muscle_iterations)
     binding = bind_skin(mesh, registry, scale=frame.mean_scale)
     ids, w = sp.add(binding.surface, binding.tri, binding.bary, binding.point, registry.meshes)
-    muscles = pend.finalize(jaw_weight=_jaw_weights(skull, frame, jaw_blend_mm))
+    muscles = pend.finalize(jaw_weight=lambda p, onm: jaw_follow_weights(p, onm, frame, *jaw_follow_mm))
     ids = sp.resolve(ids)
+    membrane = None
+    if jaw_membrane:
+        # skin under the chin bound to the cranium where that follows the jaw:
+        # no bone moves it, so it hangs between the jaw-borne skin and the still skin
+        S = int(muscles.skull_rest.shape[0])
+        jw = np.asarray(muscles.skull_jaw_weight)
+        wj = np.sum(w * np.where(ids < S, jw[np.minimum(ids, S - 1)], 0.0), axis=1)
+        chin_y = frame.to_local(frame.points["Chin middle"])[1]
+        membrane = (binding.surface == 0) & (wj > 1e-6) & (frame.to_local(mesh.vertices)[:, 1] < chin_y)
     sources = binding.surface != 0
     infl = influence_map(mesh, sources, influence_radius)
     # eyelids: one lid region per eye; angles per control from the map
@@ -226,7 +249,7 @@ def build_rig(skin, landmarks=None, skull: Skull | None = None, muscle_map=None,
     skin_sys = build_skin_system(mesh, frame, binding, ids, w, influence=infl, eyelids=eyelids,
                                  teeth=(skull.upper_teeth, skull.lower_teeth),
                                  footprint_mm=footprint_mm, bending=bending,
-                                 iterations=skin_iterations)
+                                 iterations=skin_iterations, membrane=membrane)
     jaw = JawModel.from_landmarks(frame)
     info = RigInfo(skin=mesh, landmarks=landmarks, frame=frame, skull=skull, placed=placed,
                    specs=specs, binding=binding, influence=infl, registry=registry)
@@ -234,25 +257,55 @@ def build_rig(skin, landmarks=None, skull: Skull | None = None, muscle_map=None,
                muscle_aus=tuple(tuple(s.aus) for s in controls), info=info)
 
 
-def _jaw_weights(skull: Skull, frame, blend_mm: float):
-    """Weights of the jaw motion for skull surface points (see :class:`MuscleSystem`)."""
+def jaw_follow_weights(points, on_mandible, frame, full_mm: float = JAW_FOLLOW_MM[0],
+                       reach_mm: float = JAW_FOLLOW_MM[1]) -> np.ndarray:
+    """How much of the jaw motion the tissue attached at each skull point follows, in [0, 1].
 
-    def fn(points, on_mandible):
-        w = on_mandible.astype(np.float64)
-        if blend_mm <= 0 or points.shape[0] == 0:
-            return w
-        crn = np.flatnonzero(~on_mandible)
-        if crn.size == 0:
-            return w
-        _, dist = skull.mandible.closest_points(points[crn])
-        loc = frame.to_local(points[crn])
-        st = frame.to_local(frame.stomion)[1]
-        below = np.clip((st - loc[:, 1]) / 8.0, 0.0, 1.0)      # fade in below the mouth slit
-        r = np.clip(dist / (blend_mm * frame.mean_scale), 0.0, 1.0)
-        w[crn] = (1.0 - r * r * (3.0 - 2.0 * r)) * below
-        return w
+    The skin and the muscles are attached to surface points of the skull. The thesis moves
+    the points on the mandible rigidly with it and leaves the cranium still. Real soft tissue
+    slides over the bone: in ICT-FaceKit's scan-based ``jawOpen`` expression the skin moves
+    with the mandible at the chin (ratio 0.9), about half as far 40 mm from it and 0.1-0.2 over
+    the ramus, and the skin under the jaw and on the upper neck is pulled along a little.
+    Carrying all the tissue over the mandible rigidly drags the whole jaw line with the bone
+    while the neck below stays, and the skin there folds when the jaw opens (28 / 152 / 258
+    inverted triangles on the default head at 10 / 14 / 18 degrees; 2 / 24 / 78 with these
+    weights, left in the crease under the chin).
 
-    return fn
+    The weight is ``1 - smoothstep((d - full) / (reach - full))`` of the distance ``d`` from
+    the chin landmark (reference mm) on the mandible; on the cranium it is faded out above
+    the mouth slit (8 mm ramp), so the upper lip and the cheeks above it never follow the jaw.
+    The defaults (30, 100) keep the surface around the chin moving with the bone (which is
+    what the jaw-opening scans show: a smaller ``full`` matches ICT's per-vertex sliding
+    better but fits the surface of LFAU_26 scans worse) and spread the pull over the jaw
+    line and the neck.
+
+    Args:
+        points: ``(S, 3)`` skull surface points, mm.
+        on_mandible: ``(S,)`` bool.
+        frame: the face's :class:`~jaxface.anatomy.frame.FaceFrame`.
+        full_mm, reach_mm: distances from the chin where the following starts to fall and
+            where it ends (reference mm); ``reach_mm <= 0`` gives the rigid split (1 on the
+            mandible, 0 elsewhere).
+
+    Returns:
+        ``(S,)`` weights.
+
+    Raises:
+        RigError: ``full_mm`` not below ``reach_mm``.
+    """
+    onm = np.asarray(on_mandible, bool)
+    if reach_mm <= 0 or len(onm) == 0:
+        return onm.astype(np.float64)
+    if not 0.0 <= full_mm < reach_mm:
+        raise RigError(f"jaw_follow_mm must be (full, reach) with 0 <= full < reach (mm); got "
+                       f"({full_mm}, {reach_mm}).")
+    pts = np.asarray(points, np.float64)
+    d = np.linalg.norm(pts - frame.points["Chin middle"], axis=1) / frame.mean_scale
+    t = np.clip((d - full_mm) / (reach_mm - full_mm), 0.0, 1.0)
+    w = 1.0 - t * t * (3.0 - 2.0 * t)
+    st = frame.to_local(frame.stomion)[1]
+    below = np.clip((st - frame.to_local(pts)[:, 1]) / 8.0, 0.0, 1.0)
+    return np.where(onm, w, w * below)
 
 
 class SynthState(eqx.Module):

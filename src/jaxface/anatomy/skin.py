@@ -193,6 +193,52 @@ def influence_map(skin: TriMesh, sources: np.ndarray, radius: float = 0.15) -> n
     return 1.0 - _smoothstep(d / radius)
 
 
+def membrane_interpolation(skin: TriMesh, free: np.ndarray):
+    """Harmonic interpolation into the ``free`` vertices from the vertices around them.
+
+    Solves the graph Laplace equation (edge weights ``1 / length``, all positive, so every
+    value is a convex combination of the border values and the interpolated field has no
+    folds where the border has none) with the free vertices' neighbours as the border.
+
+    Args:
+        skin: the skin mesh, mm.
+        free: ``(V,)`` bool, the vertices to interpolate. Connected pieces of it that touch no
+            other vertex are left out.
+
+    Returns:
+        ``(ids (F,), border (B,), H (F, B))``: ``x[ids] = H @ x[border]`` interpolates a field
+        ``x``; the rows of ``H`` sum to 1.
+    """
+    from scipy.sparse.csgraph import connected_components
+    from scipy.sparse.linalg import splu
+
+    V = skin.n_vertices
+    free = np.asarray(free, bool)
+    e = skin.edges
+    L = np.linalg.norm(skin.vertices[e[:, 0]] - skin.vertices[e[:, 1]], axis=1)
+    wt = 1.0 / np.maximum(L, 1e-6 * max(float(np.median(L)), 1e-12))
+    W = sp.coo_matrix((np.concatenate([wt, wt]), (np.concatenate([e[:, 0], e[:, 1]]),
+                                                    np.concatenate([e[:, 1], e[:, 0]]))), shape=(V, V)).tocsr()
+    ids = np.flatnonzero(free)
+    if ids.size:
+        # drop the free pieces without a border (nothing to interpolate from)
+        n, lab = connected_components(W[ids][:, ids], directed=False)
+        touches = np.zeros(n, bool)
+        outside = np.asarray(W[ids][:, ~free].sum(axis=1)).ravel() > 0
+        touches[lab[outside]] = True
+        ids = ids[touches[lab]]
+    if ids.size == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 0))
+    keep = np.zeros(V, bool)
+    keep[ids] = True
+    rows = W[ids]
+    border = np.setdiff1d(rows.indices, ids)
+    deg = np.asarray(rows.sum(axis=1)).ravel()
+    A = (sp.diags(deg) - rows[:, ids]).tocsc()
+    H = splu(A).solve(rows[:, border].toarray())
+    return ids, border, H
+
+
 def footprint_matrix(skin: TriMesh, sigma: float, *, chunk: int = 512) -> sp.csr_matrix:
     """Row-normalised geodesic Gaussian ``(V, V)`` sparse matrix (support ``2.5 sigma`` mm).
 
@@ -271,6 +317,8 @@ class SkinSystem(eqx.Module):
         anchor_k: ``(V,)`` anchor stiffness; anchor_inv_count: ``(V,)``.
         lid_ids, lid_fall, lid_pivot, lid_axis, lid_ctrl_angles: eyelids.
         puff_dir: ``(V, 3)`` cheek-puff displacement per unit pressure, mm.
+        mem_ids, mem_border, mem_H: the unsupported skin whose targets are interpolated from
+            its border (:func:`membrane_interpolation`): ``(F,)``, ``(B,)``, ``(F, B)``.
         groups: fused stretch/cross, area, bending groups; volume: the skin volume group.
         upper_hull, lower_hull: hull collision groups (or None); lower_planes: rest planes.
         iterations: static sweeps of the quasi-static solve.
@@ -296,6 +344,9 @@ class SkinSystem(eqx.Module):
     lid_axis: jax.Array
     lid_angles: jax.Array
     puff_dir: jax.Array
+    mem_ids: jax.Array
+    mem_border: jax.Array
+    mem_H: jax.Array
     groups: tuple
     volume: object
     upper_hull: object
@@ -328,7 +379,7 @@ def build_skin_system(skin: TriMesh, frame: FaceFrame, binding: Binding, support
                       *, influence: np.ndarray, eyelids: list, teeth=(None, None),
                       footprint_mm: float = 3.5, stiffness: dict | None = None,
                       bending: bool = True, iterations: int = 12, lid_stiffness: float = 0.9,
-                      puff_mm: float = 8.0) -> SkinSystem:
+                      puff_mm: float = 8.0, membrane: np.ndarray | None = None) -> SkinSystem:
     """Assemble the skin system (NumPy build time).
 
     Args:
@@ -346,6 +397,9 @@ def build_skin_system(skin: TriMesh, frame: FaceFrame, binding: Binding, support
         iterations: static sweeps of the quasi-static solve.
         lid_stiffness: anchor stiffness of the eyelid vertices.
         puff_mm: outward displacement of the cheeks at cheek-puff 1, mm.
+        membrane: optional ``(V,)`` bool, skin with no bone or muscle under it whose targets
+            are the harmonic interpolation of the targets around it (a stretched membrane)
+            instead of its bound points; it is anchored with stiffness 1.
     """
     k = dict(SKIN_STIFFNESS)
     k.update(stiffness or {})
@@ -408,6 +462,9 @@ def build_skin_system(skin: TriMesh, frame: FaceFrame, binding: Binding, support
     puff = (puff_mm * frame.mean_scale) * bump[:, None] * n0 * infl[:, None]
     up_g, up_planes = _hull_group(teeth[0], x, 20.0 * frame.mean_scale, V, inv_mass, 0.3)
     lo_g, lo_planes = _hull_group(teeth[1], x, 30.0 * frame.mean_scale, V, inv_mass, 0.3)
+    mem = np.zeros(V, bool) if membrane is None else (np.asarray(membrane, bool) & dyn)
+    mem_ids, mem_border, mem_H = membrane_interpolation(skin, mem)
+    anchor_k[mem_ids] = 1.0
     acnt = np.ones(V)
     return SkinSystem(
         rest=to_jax(x), bind_ids=to_jax(support_ids), bind_w=to_jax(support_w),
@@ -423,6 +480,7 @@ def build_skin_system(skin: TriMesh, frame: FaceFrame, binding: Binding, support
         lid_axis=to_jax(np.stack(axs) if axs else np.zeros((0, 3))),
         lid_angles=to_jax(np.stack(angs) if angs else np.zeros((0, 1, 2))),
         puff_dir=to_jax(puff),
+        mem_ids=to_jax(mem_ids), mem_border=to_jax(mem_border), mem_H=to_jax(mem_H),
         groups=tuple(groups), volume=vol, upper_hull=up_g, lower_hull=lo_g,
         lower_planes=(None if lo_planes is None else (to_jax(lo_planes[0]), to_jax(lo_planes[1]))),
         iterations=int(iterations),
@@ -443,7 +501,8 @@ def skin_targets(sk: SkinSystem, G, activations, cheek_puff=0.0):
     """Anchor targets ``(V, 3)`` mm of the skin for the current support ``G``.
 
     Bound surface points evaluated on ``G``, displacements averaged over the tissue
-    footprint and scaled by the influence map, eyelid rotations and cheek puff added.
+    footprint and scaled by the influence map, the membrane skin interpolated from its border,
+    eyelid rotations and cheek puff added.
     """
     dt = G.dtype
     rest = sk.rest.astype(dt)
@@ -452,6 +511,8 @@ def skin_targets(sk: SkinSystem, G, activations, cheek_puff=0.0):
     disp = jax.ops.segment_sum(sk.fp_vals.astype(dt)[:, None] * disp[sk.fp_cols], sk.fp_rows,
                                num_segments=rest.shape[0])
     disp = disp * sk.influence.astype(dt)[:, None]
+    if sk.mem_ids.shape[0]:
+        disp = disp.at[sk.mem_ids].set(sk.mem_H.astype(dt) @ disp[sk.mem_border])
     if sk.lid_ids.shape[0]:
         a = jnp.asarray(activations, dt)
         ang = jnp.einsum("c,scl->sl", a, sk.lid_angles.astype(dt)) * (jnp.pi / 180.0)   # (sides, 2)
