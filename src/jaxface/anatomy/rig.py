@@ -179,6 +179,7 @@ def build_rig(skin, landmarks=None, skull: Skull | None = None, muscle_map=None,
             triangles at 18 degrees on the default head, none with it) for animation; off by
             default because it fits jaw-opening scans less well (0.07 mm on the
             Bosphorus-style LFAU_26 and E_SURPRISE scans).
+
     Returns:
         :class:`Rig`.
 

@@ -193,6 +193,20 @@ def influence_map(skin: TriMesh, sources: np.ndarray, radius: float = 0.15) -> n
     return 1.0 - _smoothstep(d / radius)
 
 
+def _edge_lengths(skin: TriMesh) -> np.ndarray:
+    e = skin.edges
+    return np.linalg.norm(skin.vertices[e[:, 0]] - skin.vertices[e[:, 1]], axis=1)
+
+
+def _edge_matrix(skin: TriMesh, values: np.ndarray) -> sp.csr_matrix:
+    """Symmetric ``(V, V)`` sparse matrix with ``values`` (one per edge) on the mesh edges."""
+    e = skin.edges
+    V = skin.n_vertices
+    return sp.coo_matrix((np.concatenate([values, values]), (np.concatenate([e[:, 0], e[:, 1]]),
+                                                              np.concatenate([e[:, 1], e[:, 0]]))),
+                         shape=(V, V)).tocsr()
+
+
 def membrane_interpolation(skin: TriMesh, free: np.ndarray):
     """Harmonic interpolation into the ``free`` vertices from the vertices around them.
 
@@ -212,13 +226,9 @@ def membrane_interpolation(skin: TriMesh, free: np.ndarray):
     from scipy.sparse.csgraph import connected_components
     from scipy.sparse.linalg import splu
 
-    V = skin.n_vertices
     free = np.asarray(free, bool)
-    e = skin.edges
-    L = np.linalg.norm(skin.vertices[e[:, 0]] - skin.vertices[e[:, 1]], axis=1)
-    wt = 1.0 / np.maximum(L, 1e-6 * max(float(np.median(L)), 1e-12))
-    W = sp.coo_matrix((np.concatenate([wt, wt]), (np.concatenate([e[:, 0], e[:, 1]]),
-                                                    np.concatenate([e[:, 1], e[:, 0]]))), shape=(V, V)).tocsr()
+    L = _edge_lengths(skin)
+    W = _edge_matrix(skin, 1.0 / np.maximum(L, 1e-6 * max(float(np.median(L)), 1e-12)))
     ids = np.flatnonzero(free)
     if ids.size:
         # drop the free pieces without a border (nothing to interpolate from)
@@ -229,8 +239,6 @@ def membrane_interpolation(skin: TriMesh, free: np.ndarray):
         ids = ids[touches[lab]]
     if ids.size == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 0))
-    keep = np.zeros(V, bool)
-    keep[ids] = True
     rows = W[ids]
     border = np.setdiff1d(rows.indices, ids)
     deg = np.asarray(rows.sum(axis=1)).ravel()
@@ -246,11 +254,7 @@ def footprint_matrix(skin: TriMesh, sigma: float, *, chunk: int = 512) -> sp.csr
     and lower lips, or the two eyelids, do not average across the mouth or eye openings.
     """
     V = skin.n_vertices
-    e = skin.edges
-    L = np.linalg.norm(skin.vertices[e[:, 0]] - skin.vertices[e[:, 1]], axis=1)
-    L = np.maximum(L, 1e-9)
-    g = sp.coo_matrix((np.concatenate([L, L]), (np.concatenate([e[:, 0], e[:, 1]]),
-                                                  np.concatenate([e[:, 1], e[:, 0]]))), shape=(V, V)).tocsr()
+    g = _edge_matrix(skin, np.maximum(_edge_lengths(skin), 1e-9))
     lim = 2.5 * sigma
     rows, cols, vals = [], [], []
     for s in range(0, V, chunk):
