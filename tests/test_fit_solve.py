@@ -174,7 +174,7 @@ def round_trip():
     expr = scan_of(x)
     subject = subject_from_rig(rig, neutral, face_mask=head.face_mask,
                                options=SubjectOptions(levels=2, pitch_knots=6, controls=CONTROLS))
-    # 30 LM steps per inner solve (the default is 25): since the modiolus gain went from 0.6
+    # 30 LM steps per inner solve (the default is 40): since the modiolus gain went from 0.6
     # to 1, the last inner solve of this case needs 21-30 (it stopped at 20, 0.0014 mm off)
     opt = FitOptions(n_points=800, outer_iterations=4, max_steps=30, jaw_starts=(0.0,), controls=CONTROLS)
     (res,) = fit_expressions(subject, [expr], options=opt)

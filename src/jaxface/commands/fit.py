@@ -154,7 +154,7 @@ def register(app: typer.Typer) -> None:
         points: int = typer.Option(1000, "--points", min=100, help="Scan points per fit."),
         outer_iterations: int = typer.Option(4, "--outer-iterations", min=1,
                                              help="Correspondence refreshes (one exact rig synthesis each)."),
-        max_steps: int = typer.Option(25, "--max-steps", min=1, help="Levenberg-Marquardt steps per inner solve."),
+        max_steps: int = typer.Option(40, "--max-steps", min=1, help="Levenberg-Marquardt steps per inner solve."),
         exact_steps: int = typer.Option(0, "--exact-steps", min=0,
                                         help="Final LM steps through the exact rig (slow: a rig Jacobian each)."),
         levels: int = typer.Option(4, "--levels", min=1, help="Activation knots of the rig's reduced model."),

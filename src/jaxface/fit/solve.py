@@ -165,7 +165,7 @@ class FitOptions:
 
     n_points: int = 1000
     outer_iterations: int = 4
-    max_steps: int = 25
+    max_steps: int = 40
     rtol: float = 1e-3
     atol: float = 1e-4
     init_activation: float = 0.05
