@@ -232,10 +232,10 @@ def membrane_interpolation(skin: TriMesh, free: np.ndarray):
     ids = np.flatnonzero(free)
     if ids.size:
         # drop the free pieces without a border (nothing to interpolate from)
-        n, lab = connected_components(W[ids][:, ids], directed=False)
+        rows = W[ids]
+        n, lab = connected_components(rows[:, ids], directed=False)
         touches = np.zeros(n, bool)
-        outside = np.asarray(W[ids][:, ~free].sum(axis=1)).ravel() > 0
-        touches[lab[outside]] = True
+        touches[lab[np.asarray(rows[:, ~free].sum(axis=1)).ravel() > 0]] = True
         ids = ids[touches[lab]]
     if ids.size == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 0))
