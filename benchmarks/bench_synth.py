@@ -13,8 +13,9 @@ region, 9,409 vertices, with its teeth):
   default sweep counts;
 * convergence: the largest vertex difference (mm) between the default synthesis and one with
   ten times more sweeps, for a smile + jaw opening;
-* with ``--sweeps 32/8,128/8,...``: the time-accuracy curve of the quasi-static solve, each
-  ``muscle/skin`` sweep count timed and compared (max, 99th percentile and mean vertex
+* with ``--sweeps 32/8,128/8,512/24/0.97,...``: the time-accuracy curve of the quasi-static
+  solve, each ``muscle/skin[/rho]`` sweep count (``rho``: the skin's Chebyshev acceleration,
+  :func:`jaxface.anatomy.solver.iterate`) timed and compared (max, 99th percentile and mean vertex
   distance, mm) with a 3,000 / 400-sweep reference solve;
 * with ``--expressions``: the same distances to a 3,000 / 400-sweep solve (max and 99th
   percentile, mm) for each of the six emotion presets, a jaw opening (AU26) and every control
@@ -53,6 +54,16 @@ def _time(fn, *args, repeat=7):
     return compile_s, min(ts), statistics.median(ts)
 
 
+def _sweep_item(item: str) -> tuple[int, int, float]:
+    """``"M/S"`` or ``"M/S/RHO"`` (RHO: the skin's Chebyshev spectral-radius estimate)."""
+    parts = item.split("/")
+    return int(parts[0]), int(parts[1]), (float(parts[2]) if len(parts) > 2 else 0.0)
+
+
+def _label(m: int, s: int, q: float) -> str:
+    return f"{m}/{s}" + (f"/{q:g}" if q else "")
+
+
 def _expression_convergence(rig, sweeps: str, dt) -> dict:
     """Distance (mm) of the solve at each sweep count to a 3000/400-sweep solve, per expression."""
     from jaxface import facs
@@ -72,14 +83,15 @@ def _expression_convergence(rig, sweeps: str, dt) -> dict:
         return np.asarray(jax.jit(jax.vmap(lambda a, p: synthesize(r, a, JawPose(p))))(A, P))
 
     ref = run(rig.with_iterations(muscles=3000, skin=400))
-    counts = [(rig.muscles.iterations, rig.skin.iterations)]
-    counts += [tuple(int(v) for v in item.split("/")) for item in sweeps.split(",") if item]
+    counts = [(rig.muscles.iterations, rig.skin.iterations, rig.skin.chebyshev_rho)]
+    counts += [_sweep_item(item) for item in sweeps.split(",") if item]
     out = {}
-    print(f"{'distance to 3000/400, max / p99 mm':36s}" + "".join(f"{m}/{s}".rjust(14) for m, s in counts))
-    cols = [np.linalg.norm(run(rig.with_iterations(muscles=m, skin=s)) - ref, axis=2) for m, s in counts]
+    print(f"{'distance to 3000/400, max / p99 mm':36s}" + "".join(_label(*c).rjust(14) for c in counts))
+    cols = [np.linalg.norm(run(rig.with_iterations(muscles=m, skin=s, skin_rho=q)) - ref, axis=2)
+            for m, s, q in counts]
     for i, name in enumerate(cases):
-        out[name] = {f"{m}/{s}": {"max_mm": float(d[i].max()), "p99_mm": float(np.percentile(d[i], 99))}
-                     for (m, s), d in zip(counts, cols)}
+        out[name] = {_label(*c): {"max_mm": float(d[i].max()), "p99_mm": float(np.percentile(d[i], 99))}
+                     for c, d in zip(counts, cols)}
         print(f"{name:36s}" + "".join(f"{d[i].max():6.2f} / {np.percentile(d[i], 99):5.2f}" for d in cols))
     return out
 
@@ -93,7 +105,8 @@ def main():
                     help="also measure the convergence on the six emotions, AU26 and all controls at 1")
     ap.add_argument("--sweeps", default="",
                     help="comma-separated muscle/skin sweep counts for the time-accuracy curve, "
-                         "e.g. 32/8,128/8,256/16 (each compiles once)")
+                         "e.g. 32/8,128/8,256/16 (each compiles once); a third number turns on the "
+                         "skin's Chebyshev acceleration, e.g. 512/24/0.97")
     args = ap.parse_args()
     if args.dtype == "float64":
         jax.config.update("jax_enable_x64", True)
@@ -128,13 +141,13 @@ def main():
         deep = np.asarray(synthesize(rig.with_iterations(muscles=3000, skin=400), a, jaw))
         curve = []
         for item in args.sweeps.split(","):
-            m_, s_ = (int(v) for v in item.split("/"))
-            r = rig.with_iterations(muscles=m_, skin=s_)
+            m_, s_, q_ = _sweep_item(item)
+            r = rig.with_iterations(muscles=m_, skin=s_, skin_rho=q_)
             _, mn, _ = _time(synthesize, r, a, jaw, repeat=max(3, args.repeat // 2))
             d = np.linalg.norm(np.asarray(synthesize(r, a, jaw)) - deep, axis=1)
-            curve.append(dict(muscle_sweeps=m_, skin_sweeps=s_, ms_min=mn, max_mm=float(d.max()),
+            curve.append(dict(muscle_sweeps=m_, skin_sweeps=s_, skin_rho=q_, ms_min=mn, max_mm=float(d.max()),
                               p99_mm=float(np.percentile(d, 99)), mean_mm=float(d.mean())))
-            print(f"sweeps {m_:>4}/{s_:<4} {mn:7.1f} ms   vs 3000/400 sweeps: max {d.max():.3f}  "
+            print(f"sweeps {_label(m_, s_, q_):<14} {mn:7.1f} ms   vs 3000/400 sweeps: max {d.max():.3f}  "
                   f"p99 {np.percentile(d, 99):.3f}  mean {d.mean():.4f} mm", flush=True)
         res["time_accuracy"] = curve
     if args.expressions:

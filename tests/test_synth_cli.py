@@ -81,7 +81,20 @@ def test_synth_bad_inputs(tmp_path, capsys):
     code, err = run_main(capsys, "synth", "--au", "AU12", "--sweeps", "64/8", "--backend", "ltw",
                          "--out", tmp_path / "g")
     assert code == EXIT_USAGE and "ltw" in err
-    assert not any((tmp_path / s).exists() for s in "abcdefg")
+    code, err = run_main(capsys, "synth", "--au", "AU12", "--sweeps", "64/8/1.5", "--out", tmp_path / "h")
+    assert code == EXIT_USAGE and "[0, 1)" in err
+    assert not any((tmp_path / s).exists() for s in "abcdefgh")
+
+
+def test_parse_sweeps_reads_the_optional_skin_acceleration():
+    from jaxface.commands.synth import parse_sweeps
+    from jaxface.errors import RigError
+
+    assert parse_sweeps("384/16") == (384, 16, 0.0)
+    assert parse_sweeps(" 128 / 32 / 0.97 ") == (128, 32, 0.97)
+    for bad in ("1/2/3/4", "a/8", "8/8/x"):
+        with pytest.raises(RigError, match="MUSCLE/SKIN"):
+            parse_sweeps(bad)
 
 
 def test_parse_muscles_names_the_controls():

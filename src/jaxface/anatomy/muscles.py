@@ -43,7 +43,7 @@ import numpy as np
 
 from .. import pbd
 from .muscle_map import PlacedMuscle
-from .solver import fused_group, sweep
+from .solver import fused_group, iterate, sweep
 from .._arrays import to_jax
 
 __all__ = [
@@ -199,6 +199,7 @@ class MuscleSystem(eqx.Module):
     layers: tuple = eqx.field(static=True)
     h_max: int = eqx.field(static=True, default=8)
     iterations: int = eqx.field(static=True, default=24)
+    chebyshev_rho: float = eqx.field(static=True, default=0.0)
 
     @property
     def n_particles(self) -> int:
@@ -601,6 +602,6 @@ def solve_muscles(system: MuscleSystem, activations, R, t, *, iterations: int | 
     skull = moved_skull_points(system, R.astype(dt), t.astype(dt))
     x = warm_start(system, skull, activations.astype(dt)) if x0 is None else jnp.asarray(x0, dt)
     inv_mass = system.inv_mass.astype(dt)
-    x = jax.lax.fori_loop(0, iters, lambda _, x: muscle_sweep(system, x, skull, activations.astype(dt),
-                                                              inv_mass), x)
+    a = activations.astype(dt)
+    x = iterate(lambda x: muscle_sweep(system, x, skull, a, inv_mass), x, iters, system.chebyshev_rho)
     return x, skull

@@ -357,6 +357,7 @@ class SkinSystem(eqx.Module):
     lower_hull: object
     lower_planes: tuple
     iterations: int = eqx.field(static=True, default=12)
+    chebyshev_rho: float = eqx.field(static=True, default=0.0)
 
     @property
     def n_vertices(self) -> int:
@@ -560,7 +561,7 @@ def solve_skin(sk: SkinSystem, targets, R, t, *, iterations: int | None = None, 
     Returns:
         ``(V, 3)`` mm.
     """
-    from .solver import sweep
+    from .solver import iterate, sweep
 
     iters = sk.iterations if iterations is None else int(iterations)
     dt = targets.dtype
@@ -580,7 +581,7 @@ def solve_skin(sk: SkinSystem, targets, R, t, *, iterations: int | None = None, 
         lower = pbd.transform_planes(sk.lower_planes[0].astype(dt), sk.lower_planes[1].astype(dt), R.astype(dt), t.astype(dt))
     kk = sk.anchor_k.astype(dt)[:, None]
 
-    def body(_, x):
+    def body(x):
         x = x + jnp.where(dyn, kk * (targets - x), 0.0)
         x = sweep(sk.groups, x, inv_mass)
         if vol is not None:
@@ -591,7 +592,7 @@ def solve_skin(sk: SkinSystem, targets, R, t, *, iterations: int | None = None, 
             x = _hull_project(sk.lower_hull, x, lower[0], lower[1])
         return x
 
-    return jax.lax.fori_loop(0, iters, body, x)
+    return iterate(body, x, iters, sk.chebyshev_rho)
 
 
 def fused_group_static(vol):

@@ -160,22 +160,33 @@ def _safe_name(s: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", s).strip("_") or "expression"
 
 
-def parse_sweeps(text: str) -> tuple[int, int]:
-    """``"MUSCLE/SKIN"`` sweep counts of the quasi-static solve, e.g. ``"384/16"``.
+def parse_sweeps(text: str) -> tuple[int, int, float]:
+    """``"MUSCLE/SKIN[/RHO]"``: sweep counts of the quasi-static solve and, optionally, the
+    Chebyshev spectral-radius estimate of the skin solve (0 = plain sweeps), e.g. ``"384/16"``
+    or ``"384/32/0.97"``.
+
+    Returns:
+        ``(muscle_sweeps, skin_sweeps, skin_rho)``.
 
     Raises:
-        RigError: not two positive integers separated by ``/``.
+        RigError: not two positive integers (and a number in [0, 1)) separated by ``/``.
     """
     from ..errors import RigError
 
     parts = str(text).replace(" ", "").split("/")
+    hint = "give MUSCLE/SKIN sweep counts, optionally /RHO for the skin's Chebyshev acceleration, e.g. 384/16 or 384/32/0.97."
     try:
-        m, k = (int(p) for p in parts)
+        if len(parts) not in (2, 3):
+            raise ValueError
+        m, k = int(parts[0]), int(parts[1])
+        rho = float(parts[2]) if len(parts) == 3 else 0.0
     except ValueError:
-        raise RigError(f"--sweeps {text!r}: give MUSCLE/SKIN sweep counts, e.g. 384/16.") from None
+        raise RigError(f"--sweeps {text!r}: {hint}") from None
     if m < 1 or k < 1:
         raise RigError(f"--sweeps {text!r}: both sweep counts must be at least 1.")
-    return m, k
+    if not 0.0 <= rho < 1.0:
+        raise RigError(f"--sweeps {text!r}: RHO must be in [0, 1) (0.95-0.97 suits the skin; 0 = plain sweeps).")
+    return m, k, rho
 
 
 def register(app: typer.Typer) -> None:
@@ -215,7 +226,9 @@ def register(app: typer.Typer) -> None:
             None, "--sweeps", help="Quasi-static solve of the pbd backend as MUSCLE/SKIN sweeps (default "
             "32/8, ~40 ms on the ICT face). More sweeps come closer to the converged face: for "
             "bench_synth's smile on the ICT face, 384/16 (~190 ms) puts 99% of the vertices within "
-            "0.1 mm of it (python benchmarks/bench_synth.py --sweeps 32/8,384/16)."),
+            "0.1 mm of it (python benchmarks/bench_synth.py --sweeps 32/8,384/16). An optional third "
+            "number, e.g. 384/32/0.97, turns on the Chebyshev acceleration of the skin solve with "
+            "that spectral-radius estimate."),
         compare_backends: bool = typer.Option(
             False, "--compare-backends", help="Also build the other backend's rig on the same face and write "
             "backends_emotions.png: the six emotions, PBD next to LTW, with their distance (mm) as a heat map."),
@@ -276,7 +289,7 @@ def register(app: typer.Typer) -> None:
             step(f"building the {backend} rig (skull, jaw, muscles)")
             rig = build_rig(*rig_args, backend=backend)
             if n_sweeps is not None:
-                rig = rig.with_iterations(muscles=n_sweeps[0], skin=n_sweeps[1])
+                rig = rig.with_iterations(muscles=n_sweeps[0], skin=n_sweeps[1], skin_rho=n_sweeps[2])
             if list_controls:
                 from ..facs import au_matrix
 

@@ -1,0 +1,142 @@
+"""Chebyshev semi-iterative acceleration of the quasi-static solves
+(:func:`jaxface.anatomy.solver.iterate`).
+
+References: the analytic solution of a linear system (the plain iteration is Jacobi on it, so
+its spectral radius is known), plain sweeps run to convergence on the default head's skin,
+central finite differences for the derivative."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxface import facs
+from jaxface.anatomy.jaw import JawPose
+from jaxface.anatomy.rig import build_rig, synthesize_state
+from jaxface.anatomy.skin import solve_skin
+from jaxface.anatomy.solver import iterate
+from jaxface.head import generic_head
+
+
+def _jacobi_problem(n=40, seed=0):
+    """A 1D Laplacian-plus-mass system ``K u = f`` (3 columns) and its Jacobi step."""
+    rng = np.random.default_rng(seed)
+    K = 2.05 * np.eye(n) - np.eye(n, k=1) - np.eye(n, k=-1)
+    f = rng.normal(size=(n, 3))
+    d = np.diag(K)
+    rho = float(np.max(np.abs(np.linalg.eigvals(np.eye(n) - K / d[:, None]))))
+    Kj, fj, dj = jnp.asarray(K), jnp.asarray(f), jnp.asarray(d)
+
+    def step(u, f=fj):
+        return u + (f - Kj @ u) / dj[:, None]
+
+    return step, np.linalg.solve(K, f), rho, fj
+
+
+def test_chebyshev_converges_to_the_analytic_solution_much_faster_than_plain_sweeps():
+    step, exact, rho, _ = _jacobi_problem()
+    assert 0.95 < rho < 1.0            # a slow problem for the plain iteration
+    u0 = jnp.zeros_like(jnp.asarray(exact))
+    err = lambda u: float(np.abs(np.asarray(u) - exact).max())  # noqa: E731
+    plain = err(iterate(step, u0, 60))
+    cheb = err(iterate(step, u0, 60, rho=rho))
+    assert cheb < 1e-3 * plain, (cheb, plain)
+    assert cheb < 1e-4
+    # rho = 0 is exactly the plain loop
+    ref = u0
+    for _ in range(25):
+        ref = step(ref)
+    np.testing.assert_allclose(np.asarray(iterate(step, u0, 25)), np.asarray(ref), rtol=0, atol=1e-12)
+    # the fixed point does not depend on rho
+    np.testing.assert_allclose(np.asarray(iterate(step, u0, 400, rho=0.9)), exact, atol=1e-8)
+
+
+def test_chebyshev_result_ends_with_a_plain_step_and_is_differentiable():
+    step0, _, rho, f = _jacobi_problem(n=12)
+
+    def step(u):                   # a unilateral projection last, like the teeth collisions
+        return jnp.maximum(step0(u), -0.05)
+
+    u = iterate(step, jnp.zeros((12, 3)), 30, rho=rho)
+    assert float(jnp.min(u)) >= -0.05
+
+    def loss(s):
+        return jnp.sum(iterate(lambda u: step0(u, s * f), jnp.zeros((12, 3)), 30, rho=rho) ** 2)
+
+    g = float(jax.grad(loss)(1.0))
+    h = 1e-4
+    fd = (float(loss(1.0 + h)) - float(loss(1.0 - h))) / (2 * h)
+    assert abs(g - fd) < 1e-5 * max(1.0, abs(fd))
+
+
+def test_bad_spectral_radius_is_refused():
+    step, _, _, _ = _jacobi_problem(n=5)
+    with pytest.raises(ValueError, match=r"\[0, 1\)"):
+        iterate(step, jnp.zeros((5, 3)), 10, rho=1.0)
+
+
+@pytest.fixture(scope="module")
+def head_rig():
+    return build_rig(generic_head())
+
+
+def _case(rig, aus, pitch):
+    a, _, _ = facs.aus_to_controls(aus, rig.muscle_names) if aus else (np.zeros(rig.n_controls), None, None)
+    st = synthesize_state(rig, jnp.asarray(a), JawPose(jnp.asarray(pitch)))
+    solve = eqx.filter_jit(lambda sk, x0=None: solve_skin(sk, st.targets, st.R, st.t, x0=x0))
+    return st, solve
+
+
+def test_accelerated_skin_solve_reaches_the_plain_solves_fixed_point(head_rig):
+    """Jaw open 10 degrees: the skin's slowest case without lip contact. Plain sweeps to
+    convergence are the reference."""
+    rig = head_rig
+    st, solve = _case(rig, {}, 10.0)
+    ref = np.asarray(solve(rig.with_iterations(skin=1500).skin))
+    plain = np.asarray(solve(rig.with_iterations(skin=48).skin))
+    cheb = np.asarray(solve(rig.with_iterations(skin=48, skin_rho=0.97).skin))
+    e_plain = np.linalg.norm(plain - ref, axis=1).max()
+    e_cheb = np.linalg.norm(cheb - ref, axis=1).max()
+    assert e_cheb < 0.5 * e_plain, (e_cheb, e_plain)
+    long = np.asarray(solve(rig.with_iterations(skin=200, skin_rho=0.97).skin))
+    assert np.linalg.norm(long - ref, axis=1).max() < 0.02
+
+
+def test_accelerated_skin_solve_with_lip_contact_ends_at_an_equilibrium_outside_the_teeth(head_rig):
+    """Lips stretched against the teeth with the jaw at 14 degrees. Contact makes the problem
+    non-convex: a few lip vertices may settle at another contact equilibrium than the plain
+    sweeps reach, so the test checks the bulk against the plain reference and that the
+    accelerated result is itself a fixed point of the plain sweep, outside the teeth."""
+    rig = head_rig
+    st, solve = _case(rig, {"AU20": 1.0, "AU12": 1.0, "AU26": 1.0}, 14.0)
+    ref = np.asarray(solve(rig.with_iterations(skin=1500).skin))
+    plain = np.asarray(solve(rig.with_iterations(skin=48).skin))
+    cheb = np.asarray(solve(rig.with_iterations(skin=48, skin_rho=0.97).skin))
+    p99 = lambda x: np.percentile(np.linalg.norm(x - ref, axis=1), 99)  # noqa: E731
+    assert p99(cheb) < 0.6 * p99(plain), (p99(cheb), p99(plain))
+    assert np.isfinite(cheb).all()
+    long = np.asarray(solve(rig.with_iterations(skin=300, skin_rho=0.97).skin))
+    again = np.asarray(solve(rig.with_iterations(skin=1).skin, jnp.asarray(long)))
+    assert np.abs(again - long).max() < 2e-3
+    sk = rig.skin
+    R, t = np.asarray(st.R), np.asarray(st.t)
+    for x in (cheb, long):
+        for g, planes in ((sk.upper_hull, None), (sk.lower_hull, sk.lower_planes)):
+            ids = np.asarray(g.c.idx[:, 0])
+            N = np.asarray(g.c.normals) if planes is None else np.asarray(planes[0]) @ R.T
+            d = np.asarray(g.c.offsets) if planes is None else np.asarray(planes[1]) + N @ t
+            sd = (x[ids] @ N.T - d).max(axis=1)
+            assert (sd - np.asarray(g.c.clearance)).min() > -1e-5
+
+
+def test_with_iterations_refuses_bad_sweeps_and_radii(head_rig):
+    from jaxface.errors import RigError
+
+    with pytest.raises(RigError, match=r"\[0, 1\)"):
+        head_rig.with_iterations(skin_rho=1.0)
+    with pytest.raises(RigError, match="at least 1"):
+        head_rig.with_iterations(muscles=0)
+    r = head_rig.with_iterations(skin=20, skin_rho=0.95)
+    assert (r.skin.iterations, r.skin.chebyshev_rho) == (20, 0.95)
+    assert (head_rig.skin.iterations, head_rig.skin.chebyshev_rho) == (8, 0.0)   # a copy
