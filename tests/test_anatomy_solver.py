@@ -71,8 +71,10 @@ def test_chebyshev_result_ends_with_a_plain_step_and_is_differentiable():
 
 
 def test_bad_spectral_radius_is_refused():
+    from jaxface.errors import RigError
+
     step, _, _, _ = _jacobi_problem(n=5)
-    with pytest.raises(ValueError, match=r"\[0, 1\)"):
+    with pytest.raises(RigError, match=r"\[0, 1\)"):
         iterate(step, jnp.zeros((5, 3)), 10, rho=1.0)
 
 

@@ -18,6 +18,12 @@ as *one* vectorised block instead:
   exact to first order) and last the collisions, so that the result of a sweep always
   satisfies the volume and the unilateral constraints closely.
 
+:func:`iterate` runs a fixed number of sweeps, plain or with Chebyshev semi-iterative
+acceleration (the skin solve's option ``SkinSystem.chebyshev_rho``). Measured on the ICT face
+(``benchmarks/bench_synth.py``): with 512 muscle / 32 skin sweeps the smile + jaw case ends
+0.097 mm from a 3,000 / 400-sweep solve with the acceleration (rho 0.97) and 0.51 mm without,
+in the same time; the remaining distance of the other expressions is the muscle solve's.
+
 Everything is pure JAX: jit-able, vmap-able, differentiable in positions, anchor targets,
 stiffness and rest values. Units: mm (positions), inverse masses 1/g.
 """
@@ -174,11 +180,17 @@ def iterate(step, x, iterations: int, rho: float = 0.0, delay: int = 4):
 
     Returns:
         ``(N, 3)`` mm. Pure, jit-able, differentiable, vmap-able.
+
+    Raises:
+        RigError: ``rho`` outside ``[0, 1)``.
     """
+    from ..errors import RigError
+
     iterations = int(iterations)
     rho = float(rho)
     if not 0.0 <= rho < 1.0:
-        raise ValueError(f"the Chebyshev spectral radius estimate must be in [0, 1), got {rho}.")
+        raise RigError(f"the Chebyshev spectral radius estimate must be in [0, 1), got {rho} "
+                       "(0.95-0.97 suits the skin solve; 0 = plain sweeps).")
     if rho == 0.0 or iterations <= delay + 1:
         return jax.lax.fori_loop(0, iterations, lambda _, x: step(x), x)
     r2 = rho * rho
