@@ -202,6 +202,39 @@ def test_round_trip_recovers_activations_jaw_and_surface(round_trip):
     assert "AU12" in top and "AU1" in top
 
 
+def test_au_motion_readout_matches_exact_syntheses_of_each_aus_share(round_trip):
+    """The motion each AU accounts for (reduced model) against the exact rig synthesizing that
+    AU's share of the fit alone, RMS over the fit points; sides and absent AUs."""
+    subject, res = round_trip[:2]
+    names = list(subject.muscle_names)
+    mo = res.au_motion_mm
+    a = np.array([res.activations[n] for n in names])
+    je = np.asarray(res.fit.jaw_effective, np.float64)
+    ids = subject.fit_ids
+    rest = subject.forward(np.zeros(len(names)), np.zeros(3))[ids]
+
+    def rms(share, jaw):
+        d = subject.forward(share, np.asarray(jaw, np.float64))[ids] - rest
+        return float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
+
+    def only(*muscles):
+        return np.where(np.isin(names, muscles), a, 0.0)
+
+    ref = {"AU12": rms(only("zygomaticus_major_L", "zygomaticus_major_R"), np.zeros(3)),
+           "AU12L": rms(only("zygomaticus_major_L"), np.zeros(3)),
+           "AU1": rms(only("frontalis_medial_L", "frontalis_medial_R"), np.zeros(3)),
+           "AU26": rms(np.zeros(len(names)), [min(max(je[0], 0.0), 10.0), 0.0, 0.0])}
+    for k, v in ref.items():
+        assert v > 0.1, k
+        assert abs(mo[k] - v) < 0.05 * v + 0.02, (k, mo[k], v)
+    # the larger activation moves more: AU12L (0.6) over AU12R (0.45); absent AUs do not move
+    assert mo["AU12L"] > mo["AU12R"] > 0.1
+    assert mo["AU15"] < 0.05 and mo["AU27"] == 0.0
+    assert [k for k, _ in res.strongest_aus(2, bilateral_only=True, by="motion")][0] in ("AU12", "AU1", "AU26")
+    with pytest.raises(ValueError, match="intensity"):
+        res.strongest_aus(3, by="size")
+
+
 def test_round_trip_conditioning_report(round_trip):
     from jaxface.fit.solve import jacobian_conditioning, make_priors
 

@@ -39,6 +39,7 @@ __all__ = [
     "aus_to_controls",
     "emotion_controls",
     "au_intensities",
+    "au_decomposition",
 ]
 
 #: AU -> {muscle base name: activation at AU intensity 1}.
@@ -220,6 +221,44 @@ def emotion_controls(name: str, muscle_names, intensity: float = 1.0):
     return aus_to_controls({k: v * intensity for k, v in EMOTIONS[key].items()}, muscle_names)
 
 
+def au_decomposition(activations, muscle_names) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """The muscle part of :func:`au_intensities`: activations as a non-negative combination of
+    the AU table's rows.
+
+    Solves ``min_i |A^T i - a|``, ``i >= 0`` (non-negative least squares) over the unilateral
+    AU variants of :func:`au_matrix`, leaving out AUs whose rows duplicate an earlier AU's
+    (see the module doc) and AUs with no muscle on this rig; ``i`` is clipped to [0, 1].
+
+    Args:
+        activations: ``(M,)`` in [0, 1], ordered as ``muscle_names``.
+        muscle_names: the rig's control names.
+
+    Returns:
+        ``(aus, intensities (K,), rows (K, M))``: AU ``k``'s share of the activations is
+        ``intensities[k] * rows[k]``.
+
+    Raises:
+        RigError: ``activations`` and ``muscle_names`` differ in length.
+    """
+    from scipy.optimize import nnls
+
+    a = np.asarray(activations, dtype=np.float64).ravel()
+    names = list(muscle_names)
+    if a.shape[0] != len(names):
+        raise RigError(f"activations have {a.shape[0]} entries, muscle_names {len(names)}.")
+    aus, A = au_matrix(names)
+    keep, seen = [], []
+    for i, row in enumerate(A):
+        if any(np.allclose(row, r) for r in seen) or not row.any():
+            continue
+        seen.append(row)
+        keep.append(i)
+    aus = [aus[i] for i in keep]
+    A = A[keep]
+    x, _ = nnls(A.T, a)
+    return aus, np.clip(x, 0.0, 1.0), A
+
+
 def au_intensities(activations, muscle_names, jaw=None, *, cheek_puff: float = 0.0) -> dict[str, float]:
     """Read AU intensities out of muscle activations (and a jaw pose): the inverse of the table.
 
@@ -239,23 +278,7 @@ def au_intensities(activations, muscle_names, jaw=None, *, cheek_puff: float = 0
     Returns:
         ``{AU: intensity}`` sorted by AU number, plus the L/R variants.
     """
-    from scipy.optimize import nnls
-
-    a = np.asarray(activations, dtype=np.float64).ravel()
-    names = list(muscle_names)
-    if a.shape[0] != len(names):
-        raise RigError(f"activations have {a.shape[0]} entries, muscle_names {len(names)}.")
-    aus, A = au_matrix(names)
-    keep, seen = [], []
-    for i, row in enumerate(A):
-        if any(np.allclose(row, r) for r in seen) or not row.any():
-            continue
-        seen.append(row)
-        keep.append(i)
-    aus = [aus[i] for i in keep]
-    A = A[keep]
-    x, _ = nnls(A.T, a)
-    x = np.clip(x, 0.0, 1.0)
+    aus, x, _ = au_decomposition(activations, muscle_names)
     out: dict[str, float] = {}
     for au, v in zip(aus, x):
         out[au] = float(v)

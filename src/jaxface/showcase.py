@@ -159,6 +159,7 @@ def _scan_and_fit(rig, head, out: Path, say, timings) -> list[dict]:
             "activations_fit": {n: r.activations[n] for n in big},
             "max_activation_error": float(np.abs(a_fit - a_true).max()),
             "strongest_aus": r.strongest_aus(4, bilateral_only=False),
+            "most_visible_aus_mm": r.strongest_aus(4, bilateral_only=True, by="motion"),
             "files": {k: str(Path(v).relative_to(out)) for k, v in files.items()},
         })
     return rows
@@ -173,13 +174,14 @@ def _markdown(rep: dict) -> str:
     if rep.get("fits"):
         L += ["## Inverse: synthetic Bosphorus-style scans fitted back", "",
               "| scan | status | scan -> fit (mm) | skin error mean / max (mm) | jaw pitch true / fit (deg) | "
-              "max activation error | strongest AUs |", "|---|---|---|---|---|---|---|"]
+              "max activation error | strongest AUs | most visible AUs (mm) |", "|---|---|---|---|---|---|---|---|"]
         for f in rep["fits"]:
             aus = ", ".join(f"{k} {v:.2f}" for k, v in f["strongest_aus"])
+            vis = ", ".join(f"{k} {v:.2f}" for k, v in f["most_visible_aus_mm"])
             L.append(f"| {f['stem']} | {f['status']} | {f['scan_to_fit_mean_mm']:.3f} | "
                      f"{f['skin_error_mm']['mean']:.3f} / {f['skin_error_mm']['max']:.2f} | "
                      f"{f['jaw_true']['pitch_deg']:.1f} / {f['jaw_fit']['pitch_deg']:.2f} | "
-                     f"{f['max_activation_error']:.3f} | {aus} |")
+                     f"{f['max_activation_error']:.3f} | {aus} | {vis} |")
         L.append("")
         for f in rep["fits"]:
             if "picture" in f["files"]:

@@ -9,7 +9,7 @@ Contract (other tools call it; keep it stable)::
 
 Landmark files default to the scan path with suffix ``.lm3``. Several ``--scan`` options fit a
 batch (solved together in one compiled call) with a progress bar. Per scan it writes
-``DIR/<scan-stem>.json`` (keys: ``activations``, ``au_intensities``, ``jaw``, ``rigid``,
+``DIR/<scan-stem>.json`` (keys: ``activations``, ``au_intensities``, ``au_motion_mm``, ``jaw``, ``rigid``,
 ``metrics``, ``baselines``, ``solver``, ``frame``; see :class:`jaxface.fit.pipeline.ExpressionFit`)
 and ``DIR/<scan-stem>.fitted.ply`` (the fitted skin in the scan's own frame, mm); with
 ``--pictures`` also ``DIR/<scan-stem>.fit.png`` (scan, before, fit, error heat map).
@@ -220,13 +220,15 @@ def register(app: typer.Typer) -> None:
         table.add_column("scan", no_wrap=True)
         for col in ("status", "scan->fit mm", "B0 mm", "B1 mm", "pitch deg"):
             table.add_column(col, justify="right")
-        table.add_column("strongest AUs")
+        table.add_column("strongest AUs (intensity)")
+        table.add_column("most visible AUs (skin motion, mm)")
         for r in results:
             aus = ", ".join(f"{k} {v:.2f}" for k, v in r.strongest_aus(3, bilateral_only=True))
+            vis = ", ".join(f"{k} {v:.2f}" for k, v in r.strongest_aus(3, bilateral_only=True, by="motion"))
             table.add_row(r.stem, r.status if r.status == "successful" else f"[yellow]{r.status}[/]",
                           f"{r.metrics.scan_to_fit['all'].mean:.3f}",
                           f"{r.baselines['B0'].scan_to_fit['all'].mean:.3f}",
-                          f"{r.baselines['B1'].scan_to_fit['all'].mean:.3f}", f"{r.jaw['pitch_deg']:.1f}", aus)
+                          f"{r.baselines['B1'].scan_to_fit['all'].mean:.3f}", f"{r.jaw['pitch_deg']:.1f}", aus, vis)
         console.print(table)
         bad = [r.stem for r in results if r.status != "successful"]
         if bad:

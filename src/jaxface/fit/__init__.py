@@ -13,6 +13,8 @@ Submodules (NumPy/SciPy at build time; nothing here is on the jit path):
   ``bosphorus_style`` data.
 * :mod:`jaxface.fit.solve` (JAX): the inverse solve: activations, jaw pose and a rigid
   correction by optimistix Levenberg-Marquardt on point-to-plane + landmark residuals.
+* :mod:`jaxface.fit.au_motion` (JAX): the skin motion (mm) each action unit accounts for in a
+  fit, the AUs an expression *shows* (alongside the intensities of :func:`jaxface.facs.au_intensities`).
 * :mod:`jaxface.fit.pipeline`: neutral scan -> subject rig (:func:`prepare_subject`);
   expression scans -> activations, AUs, fitted skin, metrics, baselines
   (:func:`fit_expressions`); what ``jaxface fit`` runs.
@@ -49,8 +51,9 @@ _LAZY = {
     "prepare_subject": "jaxface.fit.pipeline",
     "fit_expressions": "jaxface.fit.pipeline",
     "ExpressionFit": "jaxface.fit.pipeline",
+    "au_motion": "jaxface.fit.au_motion",
 }
-_SUBMODULES = {"align", "register", "metrics", "baselines", "evaluation", "solve", "pipeline"}
+_SUBMODULES = {"align", "register", "metrics", "baselines", "evaluation", "solve", "pipeline", "au_motion"}
 
 __all__ = sorted(set(_LAZY) | _SUBMODULES)
 

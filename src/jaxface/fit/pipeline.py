@@ -49,7 +49,7 @@ __all__ = [
 ]
 
 #: top-level keys of the ``<stem>.json`` written by :meth:`ExpressionFit.write`
-JSON_KEYS = ("activations", "au_intensities", "jaw", "rigid", "metrics", "baselines", "solver", "frame")
+JSON_KEYS = ("activations", "au_intensities", "au_motion_mm", "jaw", "rigid", "metrics", "baselines", "solver", "frame")
 
 
 @dataclass(frozen=True)
@@ -397,6 +397,8 @@ class ExpressionFit:
         fitted: the fitted skin, :class:`jaxface.mesh.TriMesh` in the scan's own frame, mm.
         fitted_landmarks: the rig's landmarks on it (scan frame, mm).
         activations: muscle -> activation; au_intensities: AU -> intensity.
+        au_motion_mm: AU -> RMS skin motion (mm) that AU's share of the fit produces alone
+            (:func:`jaxface.fit.au_motion.au_motion`): which AUs the expression *shows*.
         metrics: :class:`jaxface.fit.metrics.FitMetrics` of the fit; baselines: ``{"B0":
             FitMetrics, "B1": FitMetrics}``; baseline_meshes: ``{"B0": TriMesh, "B1": TriMesh}``.
         muscle_names: the rig's control order.
@@ -410,6 +412,7 @@ class ExpressionFit:
     fitted_landmarks: Any
     activations: dict
     au_intensities: dict
+    au_motion_mm: dict
     metrics: Any
     baselines: dict
     baseline_meshes: dict
@@ -488,6 +491,7 @@ class ExpressionFit:
             "scan": self.stem,
             "activations": {k: float(v) for k, v in self.activations.items()},
             "au_intensities": {k: float(v) for k, v in self.au_intensities.items()},
+            "au_motion_mm": {k: float(v) for k, v in self.au_motion_mm.items()},
             "jaw": self.jaw,
             "rigid": self.rigid_dict(),
             "metrics": self.metrics.to_dict(),
@@ -496,9 +500,15 @@ class ExpressionFit:
             "frame": self.frame_dict(),
         }
 
-    def strongest_aus(self, n: int = 5, *, bilateral_only: bool = False) -> list[tuple[str, float]]:
-        """The ``n`` strongest AUs (name, intensity), strongest first."""
-        items = [(k, v) for k, v in self.au_intensities.items()
+    def strongest_aus(self, n: int = 5, *, bilateral_only: bool = False,
+                      by: str = "intensity") -> list[tuple[str, float]]:
+        """The ``n`` strongest AUs, strongest first: ``(name, intensity)`` with
+        ``by="intensity"`` (:attr:`au_intensities`), ``(name, mm)`` with ``by="motion"``
+        (:attr:`au_motion_mm`, the skin motion each AU accounts for)."""
+        if by not in ("intensity", "motion"):
+            raise ValueError(f"by must be 'intensity' or 'motion', got {by!r}.")
+        src = self.au_intensities if by == "intensity" else self.au_motion_mm
+        items = [(k, v) for k, v in src.items()
                  if not (bilateral_only and k[-1] in "LR")]
         return sorted(items, key=lambda kv: -kv[1])[:n]
 
@@ -633,6 +643,7 @@ def fit_expressions(
     """
     from ..anatomy.jaw import JawPose
     from ..facs import au_intensities
+    from .au_motion import au_motion
     from ..io import load_scan
     from ..mesh import TriMesh
     from .align import align_scans
@@ -667,7 +678,7 @@ def fit_expressions(
         return al, scan_fit_inputs(subject, s, al.transform, opt.n_points, seed=opt.seed)
 
     def evaluate(item):
-        s, al, f = item
+        s, al, f, motion = item
         Ti = al.transform.inverse()
         fitted = TriMesh(Ti.apply(f.skin), tris, validate=False)
         flm = subject.landmarks_on(fitted.vertices)
@@ -686,6 +697,7 @@ def fit_expressions(
         return ExpressionFit(
             stem=_stem(s), scan=s, alignment=al, fit=f, fitted=fitted, fitted_landmarks=flm,
             activations=dict(zip(subject.muscle_names, map(float, f.activations))), au_intensities=aus,
+            au_motion_mm=motion,
             metrics=metrics, baselines=base, baseline_meshes={"B0": b0m, "B1": b1m},
             muscle_names=subject.muscle_names, backend=subject.backend, options=opt, notes=notes,
             face_mask=np.asarray(reg.face_mask, bool),
@@ -702,7 +714,9 @@ def fit_expressions(
         fits = fit_points(subject.forward, subject.response, subject.fit_ids, subject.face_triangles, inputs,
                           subject.landmark_tri, subject.landmark_bary, opt, progress=say)
         say(f"evaluating {len(batch)} fit(s) and the baselines")
-        for ef in thread_map(evaluate, list(zip(batch, aligns, fits)), outer=True):
+        motions = [au_motion(subject.response, f.activations, f.jaw_effective, subject.muscle_names)
+                   for f in fits]      # JAX, on this thread (one compilation per subject)
+        for ef in thread_map(evaluate, list(zip(batch, aligns, fits, motions)), outer=True):
             results.append(ef)
             if on_result is not None:
                 on_result(ef)
