@@ -54,12 +54,6 @@ def _time(fn, *args, repeat=7):
     return compile_s, min(ts), statistics.median(ts)
 
 
-def _sweep_item(item: str) -> tuple[int, int, float]:
-    """``"M/S"`` or ``"M/S/RHO"`` (RHO: the skin's Chebyshev spectral-radius estimate)."""
-    parts = item.split("/")
-    return int(parts[0]), int(parts[1]), (float(parts[2]) if len(parts) > 2 else 0.0)
-
-
 def _label(m: int, s: int, q: float) -> str:
     return f"{m}/{s}" + (f"/{q:g}" if q else "")
 
@@ -69,6 +63,7 @@ def _expression_convergence(rig, sweeps: str, dt) -> dict:
     from jaxface import facs
     from jaxface.anatomy.jaw import JawPose
     from jaxface.anatomy.rig import synthesize
+    from jaxface.commands.synth import parse_sweeps
 
     cases = {}
     for name in sorted(facs.EMOTIONS):
@@ -84,7 +79,7 @@ def _expression_convergence(rig, sweeps: str, dt) -> dict:
 
     ref = run(rig.with_iterations(muscles=3000, skin=400))
     counts = [(rig.muscles.iterations, rig.skin.iterations, rig.skin.chebyshev_rho)]
-    counts += [_sweep_item(item) for item in sweeps.split(",") if item]
+    counts += [parse_sweeps(item) for item in sweeps.split(",") if item]
     out = {}
     print(f"{'distance to 3000/400, max / p99 mm':36s}" + "".join(_label(*c).rjust(14) for c in counts))
     cols = [np.linalg.norm(run(rig.with_iterations(muscles=m, skin=s, skin_rho=q)) - ref, axis=2)
@@ -112,6 +107,7 @@ def main():
         jax.config.update("jax_enable_x64", True)
     from jaxface import facs
     from jaxface.anatomy.ict import load_ict_face
+    from jaxface.commands.synth import parse_sweeps
     from jaxface.anatomy.jaw import JawPose
     from jaxface.anatomy.rig import build_rig, synthesize
     from jaxface.testing import shared_path
@@ -141,7 +137,7 @@ def main():
         deep = np.asarray(synthesize(rig.with_iterations(muscles=3000, skin=400), a, jaw))
         curve = []
         for item in args.sweeps.split(","):
-            m_, s_, q_ = _sweep_item(item)
+            m_, s_, q_ = parse_sweeps(item)
             r = rig.with_iterations(muscles=m_, skin=s_, skin_rho=q_)
             _, mn, _ = _time(synthesize, r, a, jaw, repeat=max(3, args.repeat // 2))
             d = np.linalg.norm(np.asarray(synthesize(r, a, jaw)) - deep, axis=1)

@@ -40,6 +40,7 @@ __all__ = [
     "emotion_controls",
     "au_intensities",
     "au_decomposition",
+    "sort_aus",
 ]
 
 #: AU -> {muscle base name: activation at AU intensity 1}.
@@ -221,6 +222,15 @@ def emotion_controls(name: str, muscle_names, intensity: float = 1.0):
     return aus_to_controls({k: v * intensity for k, v in EMOTIONS[key].items()}, muscle_names)
 
 
+def sort_aus(values: dict) -> dict:
+    """``{AU: value}`` ordered by AU number, a side after its bilateral AU (AU12, AU12L, AU12R)."""
+    def key(k):
+        m = _AU_RE.match(k)
+        return (int(m.group(1)), m.group(2) or "")
+
+    return dict(sorted(values.items(), key=lambda kv: key(kv[0])))
+
+
 def au_decomposition(activations, muscle_names) -> tuple[list[str], np.ndarray, np.ndarray]:
     """The muscle part of :func:`au_intensities`: activations as a non-negative combination of
     the AU table's rows.
@@ -298,8 +308,4 @@ def au_intensities(activations, muscle_names, jaw=None, *, cheek_puff: float = 0
     if cheek_puff:
         out["AU34"] = float(np.clip(cheek_puff, 0.0, 1.0))
 
-    def key(k):
-        m = _AU_RE.match(k)
-        return (int(m.group(1)), m.group(2) or "")
-
-    return dict(sorted(out.items(), key=lambda kv: key(kv[0])))
+    return sort_aus(out)

@@ -134,10 +134,11 @@ class Rig(eqx.Module):
         for label, v in (("muscles", muscles), ("skin", skin)):
             if v is not None and int(v) < 1:
                 raise RigError(f"{label} sweeps must be at least 1, got {v}.")
+        from .solver import check_rho
+
         for label, v in (("muscle_rho", muscle_rho), ("skin_rho", skin_rho)):
-            if v is not None and not 0.0 <= float(v) < 1.0:
-                raise RigError(f"{label} (a Chebyshev spectral-radius estimate) must be in [0, 1), got {v}; "
-                               "0.95-0.97 suits the skin solve, 0 turns the acceleration off.")
+            if v is not None:
+                check_rho(v, f"{label} (a Chebyshev spectral-radius estimate)")
         r = self
         mk, sk = {}, {}
         if muscles is not None:

@@ -38,7 +38,7 @@ import numpy as np
 from ..constraints import AnchorConstraints, Constraints, HullConstraints, VolumeConstraint
 from .._arrays import to_jax
 
-__all__ = ["FusedGroup", "fused_group", "sweep", "anchor_sweep", "iterate"]
+__all__ = ["FusedGroup", "fused_group", "sweep", "anchor_sweep", "iterate", "check_rho"]
 
 
 class FusedGroup(eqx.Module):
@@ -157,6 +157,17 @@ def anchor_sweep(x, idx, target, stiffness, inv_count, inv_mass):
     return x + jax.ops.segment_sum(dp, idx, num_segments=x.shape[0]) * inv_count.astype(dt)[:, None]
 
 
+def check_rho(rho, what: str = "the Chebyshev spectral-radius estimate") -> float:
+    """``rho`` as a float in ``[0, 1)``, else :class:`~jaxface.errors.RigError` naming ``what``."""
+    from ..errors import RigError
+
+    rho = float(rho)
+    if not 0.0 <= rho < 1.0:
+        raise RigError(f"{what} must be in [0, 1), got {rho} (0.95-0.97 suits the skin solve; "
+                       "0 = plain sweeps).")
+    return rho
+
+
 def iterate(step, x, iterations: int, rho: float = 0.0, delay: int = 4):
     """Run ``iterations`` applications of ``step`` (``x -> x``), optionally with Chebyshev
     semi-iterative acceleration (Wang 2015, "A Chebyshev semi-iterative approach for
@@ -184,13 +195,8 @@ def iterate(step, x, iterations: int, rho: float = 0.0, delay: int = 4):
     Raises:
         RigError: ``rho`` outside ``[0, 1)``.
     """
-    from ..errors import RigError
-
     iterations = int(iterations)
-    rho = float(rho)
-    if not 0.0 <= rho < 1.0:
-        raise RigError(f"the Chebyshev spectral radius estimate must be in [0, 1), got {rho} "
-                       "(0.95-0.97 suits the skin solve; 0 = plain sweeps).")
+    rho = check_rho(rho)
     if rho == 0.0 or iterations <= delay + 1:
         return jax.lax.fori_loop(0, iterations, lambda _, x: step(x), x)
     r2 = rho * rho

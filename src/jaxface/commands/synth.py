@@ -184,9 +184,9 @@ def parse_sweeps(text: str) -> tuple[int, int, float]:
         raise RigError(f"--sweeps {text!r}: {hint}") from None
     if m < 1 or k < 1:
         raise RigError(f"--sweeps {text!r}: both sweep counts must be at least 1.")
-    if not 0.0 <= rho < 1.0:
-        raise RigError(f"--sweeps {text!r}: RHO must be in [0, 1) (0.95-0.97 suits the skin; 0 = plain sweeps).")
-    return m, k, rho
+    from ..anatomy.solver import check_rho
+
+    return m, k, check_rho(rho, f"--sweeps {text!r}: RHO")
 
 
 def register(app: typer.Typer) -> None:

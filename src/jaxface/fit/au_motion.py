@@ -34,7 +34,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..facs import AU_JAW, au_decomposition
+from ..facs import AU_JAW, au_decomposition, sort_aus
 
 __all__ = ["au_motion"]
 
@@ -66,32 +66,19 @@ def au_motion(response, activations, jaw, muscle_names: Sequence[str]) -> dict[s
     Raises:
         RigError: ``activations`` and ``muscle_names`` differ in length.
     """
-    from ..facs import _AU_RE
-
     aus, inten, rows = au_decomposition(activations, muscle_names)
     M = rows.shape[1]
-    shares, labels = [], []
-    for au, i, row in zip(aus, inten, rows):
-        shares.append(i * row)
-        labels.append(au)
-    # bilateral AUs: both sides together
-    bases = {}
-    for au, share in zip(list(labels), list(shares)):
-        if au[-1] in "LR":
-            bases.setdefault(au[:-1], np.zeros(M))
-            bases[au[:-1]] = bases[au[:-1]] + share
-    for base, share in bases.items():
-        shares.append(share)
-        labels.append(base)
-    jaw_rows = []
+    own = inten[:, None] * rows                       # (K, M) each AU variant's share
+    sided = [au for au in aus if au[-1] in "LR"]
+    bases = list(dict.fromkeys(au[:-1] for au in sided))
+    labels = list(aus) + bases                        # bilateral AUs: both sides together
+    shares = list(own) + [sum(own[aus.index(au)] for au in sided if au[:-1] == b) for b in bases]
     je = np.asarray(jaw, np.float64).ravel()
     p, y, q = max(float(je[0]), 0.0), float(je[1]), max(float(je[2]), 0.0)
     p26 = AU_JAW["AU26"][0]
-    jaw_rows.append(("AU26", (min(p, p26), 0.0, 0.0)))
-    jaw_rows.append(("AU29", (0.0, 0.0, q)))
-    jaw_rows.append(("AU30L", (0.0, max(y, 0.0), 0.0)))
-    jaw_rows.append(("AU30R", (0.0, min(y, 0.0), 0.0)))
-    jaw_rows.append(("_open", (p, 0.0, 0.0)))
+    jaw_rows = [("AU26", (min(p, p26), 0.0, 0.0)), ("AU29", (0.0, 0.0, q)),
+                ("AU30L", (0.0, max(y, 0.0), 0.0)), ("AU30R", (0.0, min(y, 0.0), 0.0)),
+                ("_open", (p, 0.0, 0.0))]
     dt = response.rest.dtype
     A = np.concatenate([np.asarray(shares).reshape(-1, M), np.zeros((len(jaw_rows), M))])
     J = np.concatenate([np.zeros((len(shares), 3)), np.asarray([j for _, j in jaw_rows])])
@@ -104,9 +91,4 @@ def au_motion(response, activations, jaw, muscle_names: Sequence[str]) -> dict[s
     out["AU29"] = jaw_rms["AU29"]
     out["AU30L"], out["AU30R"] = jaw_rms["AU30L"], jaw_rms["AU30R"]
     out["AU30"] = max(out["AU30L"], out["AU30R"])
-
-    def key(k):
-        m = _AU_RE.match(k)
-        return (int(m.group(1)), m.group(2) or "")
-
-    return dict(sorted(out.items(), key=lambda kv: key(kv[0])))
+    return sort_aus(out)
