@@ -3,7 +3,7 @@
 Run from the repository root::
 
     JAXFACE_SHARED=../shared python benchmarks/bench_synth.py [--dtype float32|float64] [--repeat 7]
-        [--sweeps 32/8,256/16,...] [--expressions] [--no-jacobian]
+        [--sweeps 32/8,256/16,...] [--expressions] [--no-jacobian] [--muscle-shell 0]
 
 Prints a table and writes ``benchmarks/results/bench_synth.json``. Measures (ICT-FaceKit face
 region, 9,409 vertices, with its teeth):
@@ -21,6 +21,8 @@ region, 9,409 vertices, with its teeth):
   percentile, mm) for each of the six emotion presets, a jaw opening (AU26) and every control
   at 1 with the jaw at 18 degrees, at the default sweeps and at each ``--sweeps`` count: how
   converged the solve is beyond the one benchmark expression;
+* with ``--muscle-shell 0``: all of the above for the thesis's muscle, without the shell
+  constraint (:func:`jaxface.anatomy.muscles.shell_targets`);
 * batch throughput with ``jax.vmap`` (syntheses per second at batch 8 and 32);
 * a forward-mode Jacobian over all controls and the jaw pitch (``jax.jacfwd``), the operation
   the fitter repeats.
@@ -98,6 +100,8 @@ def main():
     ap.add_argument("--no-jacobian", action="store_true")
     ap.add_argument("--expressions", action="store_true",
                     help="also measure the convergence on the six emotions, AU26 and all controls at 1")
+    ap.add_argument("--muscle-shell", type=float, default=None,
+                    help="the muscles' shell stiffness (default: the rig's, 1; 0 = the thesis's muscle)")
     ap.add_argument("--sweeps", default="",
                     help="comma-separated muscle/skin sweep counts for the time-accuracy curve, "
                          "e.g. 32/8,128/8,256/16 (each compiles once); a third number turns on the "
@@ -116,7 +120,8 @@ def main():
     f = load_ict_face(shared_path("data", "ict", "ict_face.npz", pytest_skip=False),
                       shared_path("data", "bosphorus_style", "truth.json", pytest_skip=False))
     t0 = time.perf_counter()
-    rig = build_rig(f.skin, f.landmarks, upper_teeth=f.upper_teeth, lower_teeth=f.lower_teeth)
+    kw = {} if args.muscle_shell is None else {"muscle_shell_stiffness": args.muscle_shell}
+    rig = build_rig(f.skin, f.landmarks, upper_teeth=f.upper_teeth, lower_teeth=f.lower_teeth, **kw)
     build_s = time.perf_counter() - t0
     a, jaw, _ = facs.aus_to_controls({"AU12": 1.0, "AU6": 1.0, "AU26": 0.6}, rig.muscle_names)
     a = jnp.asarray(a, dt)
@@ -125,6 +130,7 @@ def main():
            "backend": jax.default_backend(), "dtype": args.dtype, "vertices": rig.n_vertices,
            "controls": rig.n_controls, "muscle_particles": rig.muscles.n_particles,
            "muscle_sweeps": rig.muscles.iterations, "skin_sweeps": rig.skin.iterations,
+           "muscle_shell_stiffness": rig.muscles.shell_stiffness,
            "build_s": build_s}
     c, mn, md = _time(synthesize, rig, a, jaw, repeat=args.repeat)
     res.update(synth_compile_s=c, synth_ms_min=mn, synth_ms_median=md)

@@ -143,6 +143,10 @@ def test_active_set_holds_and_releases_bounds_by_the_gradient_sign():
     np.testing.assert_array_equal(z2[[0, 1, 4, 5]], [0, 1, 1, 0])
     assert n == 3 and np.isfinite(zs[3]) and np.isnan(zs[[0, 1, 2, 4, 5, 6]]).all()
     assert 0.0 < float(activations_from_z(zs[3])) < 0.05
+    # anti-cycling: a held activation marked `keep` is not released whatever its gradient
+    f3, _, zs3, n3 = update_active_set(a, g, free, zf, tol_g=1e-4, locked=[False] * 5 + [True, False],
+                                       keep=[False, False, False, True, False, False, False])
+    assert f3[3] == 0 and np.isnan(zs3[3]) and n3 == 2
 
 
 # ------------------------------------------------------------------------------ round trip

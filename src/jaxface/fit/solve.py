@@ -58,7 +58,9 @@ degenerate, so the bounds are handled as an *active set* (:func:`update_active_s
 each inner solve, an activation within 0.01 of a bound whose cost gradient pushes it outward
 is held at the bound (its Jacobian column vanishes), and a held one whose gradient points
 back inside is released; the inner solve is repeated (same correspondences) while the set
-changes. At the end the KKT conditions of the box hold.
+changes. An activation released and then held again stays held (anti-cycling: its optimum
+lies within 0.01 of the bound, where each solve creeps and the set would flip for ever). At
+the end the KKT conditions of the box hold, to that 0.01.
 
 Jaw start: by default at the pitch whose reduced-model landmarks best match the scan's
 landmarks; ``FitOptions.jaw_starts`` gives an explicit multi-start instead (all starts in
@@ -784,7 +786,7 @@ def result_name(code: int) -> str:
 
 
 def update_active_set(a, grad, free, z_fixed, *, tol_a: float = 1e-2, tol_g: float = 1e-4,
-                      locked=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+                      locked=None, keep=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """Active-set update of the activation bounds (NumPy, one scan).
 
     A free activation within ``tol_a`` of a bound whose cost gradient pushes it outward by
@@ -792,7 +794,10 @@ def update_active_set(a, grad, free, z_fixed, *, tol_a: float = 1e-2, tol_g: flo
     activation) is held at that bound; a held one whose gradient points back inside by more
     than ``tol_g`` is released, restarting 0.02 inside. The dead band ``|grad| <= tol_g``
     keeps an activation whose optimum lies just inside a bound from flipping back and forth.
-    ``locked`` ``(M,)`` bools stay held at 0 (controls the fit leaves out).
+    ``locked`` ``(M,)`` bools stay held at 0 (controls the fit leaves out). ``keep`` ``(M,)``
+    bools are not released once held (anti-cycling: :func:`fit_points` sets it for an
+    activation that was released and then held again, whose optimum therefore lies within
+    ``tol_a`` of the bound, where the zero slope of ``sin^2`` makes every solve creep).
 
     Returns:
         ``(free, z_fixed, z_start, changes)``: new mask, bound parameters, a starting ``z``
@@ -804,6 +809,7 @@ def update_active_set(a, grad, free, z_fixed, *, tol_a: float = 1e-2, tol_g: flo
     zf = np.asarray(z_fixed, np.float64).copy()
     z_start = np.full(len(a), np.nan)
     lock = np.zeros(len(a), bool) if locked is None else np.asarray(locked, bool)
+    kept = np.zeros(len(a), bool) if keep is None else np.asarray(keep, bool)
     changes = 0
     for i in range(len(a)):
         if lock[i]:
@@ -816,7 +822,7 @@ def update_active_set(a, grad, free, z_fixed, *, tol_a: float = 1e-2, tol_g: flo
             elif a[i] >= 1.0 - tol_a and g[i] < -tol_g:
                 free[i], zf[i] = 0.0, 1.0
                 changes += 1
-        else:
+        elif not kept[i]:
             if zf[i] == 0.0 and g[i] < -tol_g:
                 free[i] = 1.0
                 z_start[i] = float(z_from_activations(0.02))
@@ -1096,6 +1102,8 @@ def fit_points(
     ys = [_y0(M, opt, p) for _, p in runs]
     free = [np.where(locked, 0.0, 1.0) for _ in runs]
     zfix = [np.zeros(M) for _ in runs]
+    released = [np.zeros(M, bool) for _ in runs]   # held once, then released
+    cycled = [np.zeros(M, bool) for _ in runs]     # ... and held again: kept at its bound
     for i in range(R_):
         z = np.asarray(ys[i]["z"]).copy()
         z[locked] = 0.0
@@ -1175,7 +1183,10 @@ def fit_points(
             for i in range(R_):
                 yi = dict(_index(Y, i))
                 f_new, zf_new, z_start, n_ch = update_active_set(acts[i], grads[i], free[i], zfix[i], locked=locked,
-                                                                 tol_g=opt.release_gradient)
+                                                                 tol_g=opt.release_gradient, keep=cycled[i])
+                # anti-cycling: released before and held again -> stays held
+                cycled[i] |= released[i] & (free[i] > 0) & (f_new == 0)
+                released[i] |= (free[i] == 0) & (f_new > 0)
                 z = np.asarray(yi["z"]).copy()
                 z = np.where(np.isfinite(z_start), z_start, z)
                 z = np.where(f_new > 0, z, zf_new)
