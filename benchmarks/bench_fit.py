@@ -218,6 +218,9 @@ def main() -> None:
     ap.add_argument("--round-trip-ict", action="store_true", help="also run the round trip on the ICT face")
     ap.add_argument("--no-single", action="store_true", help="skip the single-scan timings")
     ap.add_argument("--exact-steps", type=int, default=0, help="final LM steps through the exact rig")
+    ap.add_argument("--outer-iterations", type=int, default=None, help="correspondence refreshes (default: FitOptions')")
+    ap.add_argument("--no-gradient-correction", action="store_true",
+                    help="fit without the exact-gradient correction of the inner solves")
     args = ap.parse_args()
     warnings.simplefilter("ignore")
     import jax
@@ -227,7 +230,10 @@ def main() -> None:
     from jaxface.fit.solve import FitOptions
 
     truth = load_truth()
-    opt = FitOptions(exact_steps=args.exact_steps)
+    kw = dict(exact_steps=args.exact_steps, gradient_correction=not args.no_gradient_correction)
+    if args.outer_iterations is not None:
+        kw["outer_iterations"] = args.outer_iterations
+    opt = FitOptions(**kw)
     report = {"machine": _machine(), "options": {k: (list(v) if isinstance(v, tuple) else v)
                                                  for k, v in opt.__dict__.items()}, "subjects": []}
     for sid in [s for s in args.subjects.split(",") if s]:
@@ -276,7 +282,7 @@ def main() -> None:
         report["round_trip"] = []
         for face in faces:
             print(f"== round trip on {face}", flush=True)
-            rt = round_trip(face, dict(exact_steps=args.exact_steps))
+            rt = round_trip(face, kw)
             report["round_trip"].append(rt)
             print(f"scan->fit {rt['scan_to_fit_mean']:.4f} mm, skin error median {rt['skin_vertex_error_mm']['median']:.4f} "
                   f"mm, jaw error {np.round(rt['jaw_error'], 3).tolist()}, max activation error (distinguishable) "

@@ -152,8 +152,9 @@ def register(app: typer.Typer) -> None:
         backend: str = typer.Option("pbd", "--backend", help="Simulation backend: pbd or ltw."),
         pictures: bool = typer.Option(False, "--pictures", help="Also write a before/after picture per scan."),
         points: int = typer.Option(1000, "--points", min=100, help="Scan points per fit."),
-        outer_iterations: int = typer.Option(4, "--outer-iterations", min=1,
-                                             help="Correspondence refreshes (one exact rig synthesis each)."),
+        outer_iterations: int = typer.Option(6, "--outer-iterations", min=1,
+                                             help="Correspondence refreshes (one exact rig synthesis and one "
+                                                  "reverse pass through the rig each)."),
         max_steps: int = typer.Option(40, "--max-steps", min=1, help="Levenberg-Marquardt steps per inner solve."),
         exact_steps: int = typer.Option(0, "--exact-steps", min=0,
                                         help="Final LM steps through the exact rig (slow: a rig Jacobian each)."),

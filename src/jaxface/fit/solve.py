@@ -49,8 +49,13 @@ NumPy) and robust weights; each inner solve is optimistix Levenberg-Marquardt (f
 Jacobian, ``throw=False``) on the reduced model plus a *defect* ``d = x_exact(y_k) -
 x_reduced(y_k)``, the exact rig's disagreement with the reduced model at the current iterate
 (defect correction: at the fixed point the residuals are those of the exact rig, so the
-reduced model only has to supply good derivatives). Every outer iteration therefore costs
-one exact synthesis. The reduced model's forward-mode derivative has a custom rule
+reduced model only has to supply good derivatives). Good, not exact: the reduced model adds
+the muscles' and the jaw's effects, which interact (up to several mm on the default head),
+so the outer loop could settle where only the reduced gradient of the exact residuals
+vanishes. :func:`gradient_correction` therefore gives each inner problem the exact rig's
+gradient at its start (a rank-one term from one reverse-mode pass through the rig); its fixed
+points are stationary points of the exact fit. Every outer iteration costs one exact
+synthesis and that reverse pass. The reduced model's forward-mode derivative has a custom rule
 (:func:`hermite_sum`): a Jacobian costs about one evaluation plus a small matrix product.
 
 Bounds: ``a = sin^2(pi z / 2)`` has zero slope at both bounds, where Gauss-Newton steps
@@ -81,6 +86,7 @@ inner solve is recorded (:class:`InnerReport`); non-finite parameters raise
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import time
 from dataclasses import dataclass, field
@@ -107,6 +113,7 @@ __all__ = [
     "rotation_from_rotvec_deg",
     "apply_rigid",
     "PointSet",
+    "gradient_correction",
     "Priors",
     "make_priors",
     "residuals",
@@ -132,7 +139,9 @@ class FitOptions:
 
     Attributes:
         n_points: scan points per fit (fixed, padded; evenly subsampled).
-        outer_iterations: correspondence refreshes (each costs one exact synthesis).
+        outer_iterations: correspondence refreshes (each costs one exact synthesis, and one
+            reverse-mode pass through the rig with ``gradient_correction``). 6: on the default
+            head's synthetic round trip the 5th and 6th still lower the cost by 17 % and 2 %.
         max_steps: Levenberg-Marquardt steps per inner solve.
         rtol, atol: optimistix convergence tolerances of the inner solves.
         init_activation: the activations' starting value (``a(z0)``).
@@ -156,6 +165,10 @@ class FitOptions:
         max_normal_angle_deg: reject correspondences whose scan and skin normals differ more.
         exact_steps: Levenberg-Marquardt steps through the exact rig at the end (0 = none;
             each step costs a forward-mode Jacobian of the rig: seconds to tens of seconds).
+        gradient_correction: give every inner solve the exact rig's gradient at its start
+            (:func:`gradient_correction`, one reverse-mode pass through the rig per scan and
+            outer iteration), so that the fit cannot settle where only the reduced model's
+            gradient vanishes.
         release_gradient: dead band of the active set (mm^2 per unit activation): an
             activation is held at a bound when the cost gradient pushes it outward by more
             than this, and released when it points inside by more than this.
@@ -166,7 +179,7 @@ class FitOptions:
     """
 
     n_points: int = 1000
-    outer_iterations: int = 4
+    outer_iterations: int = 6
     max_steps: int = 40
     rtol: float = 1e-3
     atol: float = 1e-4
@@ -182,6 +195,7 @@ class FitOptions:
     robust_floor_mm: tuple[float, float] = (6.0, 1.5)
     max_normal_angle_deg: float = 60.0
     exact_steps: int = 0
+    gradient_correction: bool = True
     release_gradient: float = 5e-5
     active_set_rounds: int = 3
     controls: tuple[str, ...] | None = None
@@ -622,6 +636,10 @@ class PointSet(eqx.Module):
             evaluating the exact rig at them).
         free: ``(M,)`` 1 for a free activation, 0 for one held at a bound (active set).
         z_fixed: ``(M,)`` the parameter of a held activation (0 -> a = 0, 1 -> a = 1).
+        grad_u, grad_p: ``(M + 3,)`` the gradient correction (:func:`gradient_correction`):
+            the data residuals get ``r_k (grad_u . ([a, jaw] - grad_p))``; zeros = none.
+        grad_r: ``(K + 3 L,)`` ``r_k``, the data residuals at ``grad_p`` (points, then the
+            landmarks' x, y, z).
     """
 
     model: ResponseModel
@@ -635,6 +653,9 @@ class PointSet(eqx.Module):
     bary: jax.Array
     free: jax.Array
     z_fixed: jax.Array
+    grad_u: jax.Array | None = None
+    grad_p: jax.Array | None = None
+    grad_r: jax.Array | None = None
 
 
 class Priors(eqx.Module):
@@ -687,7 +708,65 @@ def _data_residuals(a, jaw, rigid, pts: PointSet, use_rigid: bool):
     K = pts.normal.shape[0]
     r_pt = jnp.sqrt(pts.w_point) * jnp.sum(pts.normal * (x[:K] - pts.target[:K]), axis=-1)
     r_lm = jnp.sqrt(pts.w_landmark)[:, None] * (x[K:] - pts.target[K:])
+    if pts.grad_u is not None:
+        s = jnp.dot(pts.grad_u, jnp.concatenate([a, jaw]) - pts.grad_p)
+        r_pt = r_pt + s * pts.grad_r[:K]
+        r_lm = r_lm + s * pts.grad_r[K:].reshape(r_lm.shape)
     return r_pt, r_lm
+
+
+def gradient_correction(exact_fn, fit_ids, y, pts: PointSet, use_rigid: bool):
+    """Rank-one correction that gives the inner problem the exact rig's gradient at ``y``.
+
+    Defect correction makes the inner residuals those of the exact rig at the current
+    iterate, but their Jacobian stays the reduced model's. Where the reduced model is not
+    additive enough (muscles interacting with each other and with the jaw: up to several mm
+    on the default head), the outer loop can settle where the *reduced* gradient of the exact
+    residuals vanishes while the exact gradient does not: a spurious fit. With
+    ``g = J^T r`` over the data residuals ``r_k`` at ``p_k = [a, jaw]`` for the exact rig
+    (one reverse-mode pass through it) and the reduced model, the data residuals get
+    ``r_k (u . (p - p_k))`` with ``u = (g_exact - g_reduced) / |r_k|^2``: the corrected
+    Jacobian ``J + r_k u^T`` has ``(J + r_k u^T)^T r_k = g_exact``. At a fixed point of the
+    outer loop the exact gradient of the data term then vanishes.
+
+    Args:
+        exact_fn: the exact rig, ``(a (M,), jaw (3,)) -> (V, 3)`` mm.
+        fit_ids: ``(P,)`` fit vertices of the rig skin.
+        y: parameters at which to correct; pts: its :class:`PointSet` (with the defect
+            of ``y``); use_rigid: whether ``y`` has a rigid correction.
+
+    Returns:
+        ``(u (M + 3,), p_k (M + 3,), r_k (K + 3 L,))``.
+    """
+    a = activations_from_z(effective_z(y, pts))
+    p0 = jnp.concatenate([a, y["jaw"]])
+    M = a.shape[0]
+    K = pts.normal.shape[0]
+
+    def data(p, x_of):
+        x = x_of(p[:M], p[M:])
+        if use_rigid:
+            x = apply_rigid(y["rigid"], pts.centre, x)
+        r_pt = jnp.sqrt(pts.w_point) * jnp.sum(pts.normal * (x[:K] - pts.target[:K]), axis=-1)
+        r_lm = jnp.sqrt(pts.w_landmark)[:, None] * (x[K:] - pts.target[K:])
+        return jnp.concatenate([r_pt, r_lm.ravel()])
+
+    def exact(a_, j_):
+        return _points_from_vertices(exact_fn(a_, j_)[fit_ids], pts)
+
+    def reduced(a_, j_):
+        return pts.model(a_, j_) + pts.defect
+
+    r, vjp_e = jax.vjp(lambda p: data(p, exact), p0)
+    _, vjp_r = jax.vjp(lambda p: data(p, reduced), p0)
+    g_e, = vjp_e(r)
+    g_r, = vjp_r(r)
+    rr = jnp.sum(r * r)
+    u = jnp.where(rr > 1e-20, (g_e - g_r) / jnp.where(rr > 1e-20, rr, 1.0), 0.0)
+    return u, p0, r
+
+
+_gradient_correction_jit = eqx.filter_jit(gradient_correction)
 
 
 def model_points(y, pts: PointSet, use_rigid: bool):
@@ -1136,6 +1215,7 @@ def fit_points(
         )
 
     outer = max(int(opt.outer_iterations), 1)
+    fit_ids_j = to_jax(np.asarray(fit_ids))
     for k in range(outer):
         t_it = time.perf_counter()
         Xr, skins, A = exact_skins(ys, free, zfix)
@@ -1162,6 +1242,9 @@ def fit_points(
                     z_fixed=to_jax(zfix[i]),
                 )
             )
+            if opt.gradient_correction:
+                u, p0, r0 = _gradient_correction_jit(forward._fn, fit_ids_j, ys[i], pts_list[-1], priors.use_rigid)
+                pts_list[-1] = dataclasses.replace(pts_list[-1], grad_u=u, grad_p=p0, grad_r=r0)
         P = _stack(pts_list)
         Y0 = _stack(ys)
         tot_steps = np.zeros(R_, np.int64)
@@ -1289,12 +1372,13 @@ def _exact_refine(forward, fit_ids, y, pts: PointSet, priors: Priors, opt: FitOp
     cost = jax.jit(lambda yy, args: sum(jnp.sum(v * v) for v in jax.tree_util.tree_leaves(resid(yy, args))))
     solver = optx.LevenbergMarquardt(rtol=opt.rtol, atol=opt.atol)
     c0 = float(cost(y, (pts, priors)))
-    sol = jax.jit(
-        lambda y0, args: optx.least_squares(resid, solver, y0, args=args, max_steps=int(opt.exact_steps), throw=False)
-    )(y, (pts, priors))
-    yv = sol.value
+    def run(y0, args):
+        sol = optx.least_squares(resid, solver, y0, args=args, max_steps=int(opt.exact_steps), throw=False)
+        return sol.value, sol.result._value, sol.stats["num_steps"]   # arrays only out of the jit
+
+    yv, code, n_steps = jax.jit(run)(y, (pts, priors))
     c1 = float(cost(yv, (pts, priors)))
-    reports.append(InnerReport(outer, "exact:" + result_name(int(sol.result._value)), int(sol.stats["num_steps"]),
+    reports.append(InnerReport(outer, "exact:" + result_name(int(code)), int(n_steps),
                                c0, c1, int(np.sum(np.asarray(pts.w_point) > 0)), float("nan"), 0,
                                int(np.sum(np.asarray(pts.free) == 0)), time.perf_counter() - t0))
     return yv
