@@ -224,11 +224,11 @@ def register(app: typer.Typer) -> None:
         pictures: bool = typer.Option(True, "--pictures/--no-pictures", help="Write a PNG per expression."),
         sweeps: Optional[str] = typer.Option(  # noqa: UP007
             None, "--sweeps", help="Quasi-static solve of the pbd backend as MUSCLE/SKIN sweeps (default "
-            "32/8, ~40 ms on the ICT face). More sweeps come closer to the converged face: for "
-            "bench_synth's smile on the ICT face, 384/16 (~190 ms) puts 99% of the vertices within "
-            "0.1 mm of it (python benchmarks/bench_synth.py --sweeps 32/8,384/16). An optional third "
-            "number, e.g. 384/32/0.97, turns on the Chebyshev acceleration of the skin solve with "
-            "that spectral-radius estimate."),
+            "32/8, ~30 ms on the ICT face, up to 1.3 mm from the converged face). An optional third "
+            "number turns on the Chebyshev acceleration of the skin solve with that spectral-radius "
+            "estimate: 64/96/0.98 (~200 ms) puts 99% of the vertices within 0.005 mm of the converged "
+            "face (python benchmarks/bench_synth.py --sweeps 32/8,64/96/0.98 --expressions). "
+            "More plain sweeps, e.g. 3000/400, give a reference."),
         compare_backends: bool = typer.Option(
             False, "--compare-backends", help="Also build the other backend's rig on the same face and write "
             "backends_emotions.png: the six emotions, PBD next to LTW, with their distance (mm) as a heat map."),

@@ -736,7 +736,8 @@ def gradient_correction(exact_fn, fit_ids, y, pts: PointSet, use_rigid: bool):
             of ``y``); use_rigid: whether ``y`` has a rigid correction.
 
     Returns:
-        ``(u (M + 3,), p_k (M + 3,), r_k (K + 3 L,))``.
+        ``(u (M + 3,), p_k (M + 3,), r_k (K + 3 L,))``; ``u = 0`` (no correction) where the
+        reverse pass is not finite.
     """
     a = activations_from_z(effective_z(y, pts))
     p0 = jnp.concatenate([a, y["jaw"]])
@@ -762,8 +763,11 @@ def gradient_correction(exact_fn, fit_ids, y, pts: PointSet, use_rigid: bool):
     g_e, = vjp_e(r)
     g_r, = vjp_r(r)
     rr = jnp.sum(r * r)
-    u = jnp.where(rr > 1e-20, (g_e - g_r) / jnp.where(rr > 1e-20, rr, 1.0), 0.0)
-    return u, p0, r
+    # no correction where the reverse pass through the rig is not finite (seen once, in
+    # float32 at a wide jaw opening): the inner solve then has the reduced gradient
+    ok = (rr > 1e-20) & jnp.all(jnp.isfinite(g_e)) & jnp.all(jnp.isfinite(r))
+    u = jnp.where(ok, (g_e - g_r) / jnp.where(ok, rr, 1.0), 0.0)
+    return u, p0, jnp.where(ok, r, 0.0)
 
 
 _gradient_correction_jit = eqx.filter_jit(gradient_correction)
