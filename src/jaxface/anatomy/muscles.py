@@ -33,7 +33,7 @@ between 256 and 2,048 sweeps with every control at 1). With the shell every top 
 pulled to its place above its bottom particle's sample, in the local frame of the samples,
 at the rest thickness times the fibre's thickening; a contracting fibre shortens its top
 sheet by ``1 - c`` too and thickens its boundary connections. The muscle then shortens and
-bulges at constant volume, and the solve settles within 0.12 mm in 32 sweeps on the six
+bulges at constant volume, and the solve settles within 0.15 mm in 32 sweeps on the six
 emotions, a jaw opening and every control at 1 (:func:`solve_muscles`; measured against
 2,048 sweeps). ``shell_stiffness = 0`` restores the thesis's muscle.
 

@@ -219,7 +219,7 @@ def build_rig(skin, landmarks=None, skull: Skull | None = None, muscle_map=None,
             its support, shortening and bulging when it contracts). 0 gives the thesis's
             muscle, whose top sheet sheared over the bottom one (up to 130 degrees, inverted)
             and whose solve had not settled after 2,000 sweeps on the ICT face; with the
-            default 1 it settles within 0.12 mm in 32 sweeps.
+            default 1 it settles within 0.15 mm in 32 sweeps.
 
     Returns:
         :class:`Rig`.
