@@ -106,6 +106,7 @@ STIFFNESS["passive"] = STIFFNESS["sheet"]
 SHELL_STIFFNESS = 1.0
 #: Range of the fibre thickening factor (rest over contracted fibre length) the shell applies.
 THICKENING_RANGE = (0.5, 3.0)
+DISTANCE_GROUP = "muscle distances"  # name of the fused distance group (first of MuscleSystem.groups)
 
 
 @dataclass
@@ -179,7 +180,7 @@ class MuscleSystem(eqx.Module):
         groups: fused distance and bending groups (all muscles).
         vol_*: per-muscle volume data (:func:`multi_volume_project`).
         pos_inv_count: ``(Nm,)``; inv_mass: ``(Nm,)``.
-        shell_top, shell_bottom: ``(K,)`` every top particle and the bottom particle under it;
+        shell_top: ``(K,)`` every top particle (the bottom one under it is ``below[top]``);
             shell_along: ``(K, 4)`` the bottom's neighbours along its fibre and across;
             shell_mode: ``(K,)`` how the frame is built (:func:`_shell_frames`); shell_tri:
             ``(T, 3)`` the bottom-sheet triangles; shell_local: ``(K, 3)`` the top's rest
@@ -230,7 +231,6 @@ class MuscleSystem(eqx.Module):
     particle_layer: jax.Array
     below: jax.Array
     shell_top: jax.Array
-    shell_bottom: jax.Array
     shell_along: jax.Array
     shell_tri: jax.Array
     shell_local: jax.Array
@@ -423,7 +423,7 @@ def build_muscle_system(placed: list[PlacedMuscle], registry, control_index: dic
         pairs = np.concatenate([a for a, _ in dist])
         ks = np.concatenate([np.full(len(a), k) for a, k in dist])
         groups.append(fused_group(pbd.distance_constraints(pairs, rest, stiffness=ks), n,
-                                  omega=1.5, name="muscle distances"))
+                                  omega=1.5, name=DISTANCE_GROUP))
     if bend:
         ep = np.concatenate([a for a, _ in bend])
         ks = np.concatenate([np.full(len(a), k) for a, k in bend])
@@ -552,7 +552,7 @@ def _shell_data(with_mesh, offsets, rest, fib, dist, dist_key) -> dict:
         lon.append(np.array([sample_of.get(int(e[0]) - nwh, -1) for e in pairs]) if key == "lon_up" else none)
         conn.append(np.array([sample_of.get(int(e[0]), -1) for e in pairs]) if key == "connection" else none)
     cat = lambda v: np.concatenate(v).astype(np.int64) if v else np.zeros(0, np.int64)  # noqa: E731
-    return dict(shell_top=top, shell_bottom=bot, shell_along=al, shell_tri=tri, shell_local=local,
+    return dict(shell_top=top, shell_along=al, shell_tri=tri, shell_local=local,
                 shell_mode=mode.astype(np.int32),
                 shell_sample=np.asarray([sample_of.get(int(b_), -1) for b_ in bot], np.int64),
                 dist_lon_sample=cat(lon), dist_conn_sample=cat(conn))
@@ -580,13 +580,20 @@ def shell_targets(system: "MuscleSystem", x, ids, tg, thick):
         thick: ``(Pf,)`` thickening of every fibre sample (:func:`fibre_thickening`).
     """
     dt = x.dtype
+    bottom = system.below[system.shell_top]
     base = x.at[ids].set(tg.astype(dt))
-    F = _shell_frames(base, system.shell_bottom, system.shell_along, system.shell_tri, system.shell_mode)
-    lo, hi = THICKENING_RANGE
-    th = jnp.concatenate([jnp.clip(thick.astype(dt), lo, hi), jnp.ones((1,), dt)])[system.shell_sample]
+    F = _shell_frames(base, bottom, system.shell_along, system.shell_tri, system.shell_mode)
+    th = _padded_thickening(thick, dt)[system.shell_sample]
     loc = system.shell_local.astype(dt)
     loc = jnp.concatenate([loc[:, :2], loc[:, 2:] * th[:, None]], axis=1)
-    return base[system.shell_bottom] + jnp.einsum("kij,ki->kj", F, loc)
+    return base[bottom] + jnp.einsum("kij,ki->kj", F, loc)
+
+
+def _padded_thickening(thick, dt):
+    """``(Pf + 1,)`` fibre thickening clipped to :data:`THICKENING_RANGE`, with a trailing 1
+    for the index -1 (no fibre sample)."""
+    lo, hi = THICKENING_RANGE
+    return jnp.concatenate([jnp.clip(thick.astype(dt), lo, hi), jnp.ones((1,), dt)])
 
 
 def _active_groups(system: "MuscleSystem", activations, thick, dt):
@@ -594,15 +601,14 @@ def _active_groups(system: "MuscleSystem", activations, thick, dt):
     edges along a fibre shortened by ``1 - c`` (the fibre contracts, eq. 4.11, in both
     sheets) and boundary connections lengthened by the fibre's thickening."""
     groups = system.groups
-    if not groups or system.dist_lon_sample.shape[0] != groups[0].c.rest.shape[0]:
+    if not groups or groups[0].name != DISTANCE_GROUP:
         return groups
     acts = jnp.concatenate([jnp.asarray(activations, dt), jnp.zeros((1,), dt)])
     c_f = acts[system.fib_ctrl] * system.fib_cmax.astype(dt)
     c_s = jnp.concatenate([jnp.repeat(c_f, system.h_max)[system.fib_valid], jnp.zeros((1,), dt)])
-    lo, hi = THICKENING_RANGE
-    th_s = jnp.concatenate([jnp.clip(thick.astype(dt), lo, hi), jnp.ones((1,), dt)])
     g0 = groups[0]
-    r = g0.c.rest.astype(dt) * (1.0 - c_s[system.dist_lon_sample]) * th_s[system.dist_conn_sample]
+    r = (g0.c.rest.astype(dt) * (1.0 - c_s[system.dist_lon_sample])
+         * _padded_thickening(thick, dt)[system.dist_conn_sample])
     return (eqx.tree_at(lambda q: q.c.rest, g0, r),) + tuple(groups[1:])
 
 

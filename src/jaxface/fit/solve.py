@@ -637,7 +637,7 @@ class PointSet(eqx.Module):
         free: ``(M,)`` 1 for a free activation, 0 for one held at a bound (active set).
         z_fixed: ``(M,)`` the parameter of a held activation (0 -> a = 0, 1 -> a = 1).
         grad_u, grad_p: ``(M + 3,)`` the gradient correction (:func:`gradient_correction`):
-            the data residuals get ``r_k (grad_u . ([a, jaw] - grad_p))``; zeros = none.
+            the data residuals get ``r_k (grad_u . ([a, jaw] - grad_p))``; None = none.
         grad_r: ``(K + 3 L,)`` ``r_k``, the data residuals at ``grad_p`` (points, then the
             landmarks' x, y, z).
     """
@@ -701,13 +701,21 @@ def effective_z(y, pts: PointSet):
     return jnp.where(pts.free > 0, y["z"], pts.z_fixed)
 
 
+def _point_residuals(x, pts: PointSet):
+    """Weighted point-to-plane ``(K,)`` and landmark ``(L, 3)`` residuals (mm) of the simulated
+    surface points ``x`` ``(K + L, 3)`` (rigid correction already applied)."""
+    K = pts.normal.shape[0]
+    r_pt = jnp.sqrt(pts.w_point) * jnp.sum(pts.normal * (x[:K] - pts.target[:K]), axis=-1)
+    r_lm = jnp.sqrt(pts.w_landmark)[:, None] * (x[K:] - pts.target[K:])
+    return r_pt, r_lm
+
+
 def _data_residuals(a, jaw, rigid, pts: PointSet, use_rigid: bool):
     x = pts.model(a, jaw) + pts.defect
     if use_rigid:
         x = apply_rigid(rigid, pts.centre, x)
+    r_pt, r_lm = _point_residuals(x, pts)
     K = pts.normal.shape[0]
-    r_pt = jnp.sqrt(pts.w_point) * jnp.sum(pts.normal * (x[:K] - pts.target[:K]), axis=-1)
-    r_lm = jnp.sqrt(pts.w_landmark)[:, None] * (x[K:] - pts.target[K:])
     if pts.grad_u is not None:
         s = jnp.dot(pts.grad_u, jnp.concatenate([a, jaw]) - pts.grad_p)
         r_pt = r_pt + s * pts.grad_r[:K]
@@ -742,14 +750,12 @@ def gradient_correction(exact_fn, fit_ids, y, pts: PointSet, use_rigid: bool):
     a = activations_from_z(effective_z(y, pts))
     p0 = jnp.concatenate([a, y["jaw"]])
     M = a.shape[0]
-    K = pts.normal.shape[0]
 
     def data(p, x_of):
         x = x_of(p[:M], p[M:])
         if use_rigid:
             x = apply_rigid(y["rigid"], pts.centre, x)
-        r_pt = jnp.sqrt(pts.w_point) * jnp.sum(pts.normal * (x[:K] - pts.target[:K]), axis=-1)
-        r_lm = jnp.sqrt(pts.w_landmark)[:, None] * (x[K:] - pts.target[K:])
+        r_pt, r_lm = _point_residuals(x, pts)
         return jnp.concatenate([r_pt, r_lm.ravel()])
 
     def exact(a_, j_):
@@ -1367,10 +1373,8 @@ def _exact_refine(forward, fit_ids, y, pts: PointSet, priors: Priors, opt: FitOp
         x = _points_from_vertices(fn(a, yy["jaw"])[fit_ids_j], pts_)
         if pri.use_rigid:
             x = apply_rigid(yy["rigid"], pts_.centre, x)
-        K = pts_.normal.shape[0]
         out = residuals(yy, args)
-        out["points"] = jnp.sqrt(pts_.w_point) * jnp.sum(pts_.normal * (x[:K] - pts_.target[:K]), axis=-1)
-        out["landmarks"] = jnp.sqrt(pts_.w_landmark)[:, None] * (x[K:] - pts_.target[K:])
+        out["points"], out["landmarks"] = _point_residuals(x, pts_)
         return out
 
     cost = jax.jit(lambda yy, args: sum(jnp.sum(v * v) for v in jax.tree_util.tree_leaves(resid(yy, args))))
