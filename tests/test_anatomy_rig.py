@@ -445,3 +445,34 @@ def test_membrane_interpolation_reproduces_linear_fields_and_a_jacobi_reference(
     # a free region with nothing around it is left alone
     ids, border, H = membrane_interpolation(mesh, np.ones(mesh.n_vertices, bool))
     assert ids.size == 0 and H.shape == (0, 0)
+
+
+def test_footprint_with_one_sigma_per_vertex_matches_the_scalar_rows_and_blends_by_height(rig):
+    from jaxface.anatomy.skin import footprint_matrix, footprint_sigma
+
+    mesh, _ = _grid_mesh(jitter=1.0)
+    sig = np.where(mesh.vertices[:, 1] > np.median(mesh.vertices[:, 1]), 14.0, 6.0)
+    M = footprint_matrix(mesh, sig).toarray()
+    nnz = (M > 0).sum(axis=1)                   # rows reach past the neighbours, wider for 14
+    assert nnz[sig == 14.0].mean() > nnz[sig == 6.0].mean() > 4
+    for s in (6.0, 14.0):
+        ref = footprint_matrix(mesh, s).toarray()   # the scalar path, row by row
+        rows = np.flatnonzero(sig == s)
+        np.testing.assert_allclose(M[rows], ref[rows], atol=1e-12)
+    np.testing.assert_allclose(M.sum(axis=1), 1.0)
+    # the (lower, upper) pair on the default head: lower below the inner eye corners,
+    # upper above the inner eyebrows, monotone in height in between
+    info = rig.info
+    fr = info.frame
+    y = fr.to_local(info.skin.vertices)[:, 1]
+    s = footprint_sigma(info.skin, fr, (5.0, 12.0)) / fr.mean_scale
+    eye = np.mean([fr.to_local(fr.points[f"Inner {k} eye corner"])[1] for k in ("left", "right")])
+    brow = np.mean([fr.to_local(fr.points[f"Inner {k} eyebrow"])[1] for k in ("left", "right")])
+    np.testing.assert_allclose(s[y <= eye], 5.0)
+    np.testing.assert_allclose(s[y >= brow], 12.0)
+    o = np.argsort(y)
+    assert np.all(np.diff(s[o]) >= -1e-12)
+    np.testing.assert_allclose(footprint_sigma(info.skin, fr, 7.0), 7.0 * fr.mean_scale)
+    for bad in ((5.0, -1.0), (1.0, 2.0, 3.0), float("nan"), 0.0):
+        with pytest.raises(RigError, match="footprint"):
+            footprint_sigma(info.skin, fr, bad)

@@ -38,10 +38,19 @@ from .skin import SkinSystem, bind_skin, build_skin_system, eyelid_vertices, inf
 from .skull import Skull, estimate_skull
 
 JAW_FOLLOW_MM = (30.0, 100.0)
+
 """Default ``(full, reach)`` distances from the chin of the jaw's pull on the soft tissue,
 reference mm (:func:`jaw_follow_weights`)."""
 
-__all__ = ["JAW_FOLLOW_MM", "Rig", "RigInfo", "SynthState", "build_rig", "jaw_follow_weights", "synthesize",
+#: Default sigma of the tissue footprint, reference mm (one value for the whole face).
+#: A ``(lower, upper)`` pair widens it over the forehead
+#: (:func:`~jaxface.anatomy.skin.footprint_sigma`): ``(5, 12)`` fits the Bosphorus-style
+#: brow scans better (UFAU_1 0.21 -> 0.17 mm, UFAU_2 0.43 -> 0.39 mm) but blurs the
+#: corrugator into its neighbours, so that the synthetic round trip recovers it only within
+#: 0.09 instead of 0.035; it is therefore not the default.
+FOOTPRINT_MM = 5.0
+
+__all__ = ["FOOTPRINT_MM", "JAW_FOLLOW_MM", "Rig", "RigInfo", "SynthState", "build_rig", "jaw_follow_weights", "synthesize",
            "synthesize_state", "simulate"]
 
 
@@ -172,7 +181,7 @@ def _as_mesh(skin) -> TriMesh:
 
 def build_rig(skin, landmarks=None, skull: Skull | None = None, muscle_map=None, backend: str = "pbd",
               *, upper_teeth: TriMesh | None = None, lower_teeth: TriMesh | None = None,
-              muscle_iterations: int = 32, skin_iterations: int = 8, footprint_mm: float = 5.0,
+              muscle_iterations: int = 32, skin_iterations: int = 8, footprint_mm: float | tuple = FOOTPRINT_MM,
               influence_radius: float = 0.15, eyelid_threshold: float = 0.04,
               bending: bool = False, jaw_follow_mm: tuple[float, float] = JAW_FOLLOW_MM,
               jaw_membrane: bool = False, skin_chebyshev_rho: float = 0.0,
@@ -190,7 +199,9 @@ def build_rig(skin, landmarks=None, skull: Skull | None = None, muscle_map=None,
         upper_teeth, lower_teeth: teeth meshes (mm) for the lip collisions (default: the
             skull's).
         muscle_iterations, skin_iterations: static sweeps of the quasi-static solves.
-        footprint_mm: sigma of the tissue footprint (reference mm).
+        footprint_mm: sigma of the tissue footprint (reference mm), or a ``(lower, upper)``
+            pair: the lower face up to the nose tip, the upper face from the inner eye
+            corners, blended between (:func:`~jaxface.anatomy.skin.footprint_sigma`).
         influence_radius: influence-map falloff in normalised geodesic distance.
         eyelid_threshold: normalised geodesic distance of the eyelid region (thesis 0.04).
         bending: include the skin's dihedral bending constraints (thesis 0.95; off by default:

@@ -13,9 +13,10 @@ Build time (NumPy):
   ``p0 - sp0`` (the link has zero rest length), which makes the tie resist tangential sliding
   so that the quasi-static problem is well posed;
 * **tissue footprint**: the anchor displacement of a vertex is the geodesic-Gaussian average
-  (sigma ``footprint_mm``) of the displacements of the surface points bound around it, a model
-  of the fat layer that spreads a muscle's pull over the skin (without it the skin would shear
-  sharply along every muscle border);
+  (sigma ``footprint_mm``, one value or a ``(lower, upper)`` pair blended from the eyes up to
+  the brows, :func:`footprint_sigma`) of the displacements of the surface points bound around
+  it, a model of the fat layer that spreads a muscle's pull over the skin (without it the skin
+  would shear sharply along every muscle border);
 * **influence map**: ``w = 1 - smoothstep(d / radius)`` of the normalised geodesic distance
   ``d`` from the vertices bound to a muscle or to the mandible; it scales each vertex's anchor
   displacement (thesis line 17 scales the particle's displacement; scaling the target keeps
@@ -55,6 +56,7 @@ __all__ = [
     "bind_skin",
     "influence_map",
     "footprint_matrix",
+    "footprint_sigma",
     "eyelid_vertices",
     "build_skin_system",
     "skin_targets",
@@ -247,26 +249,61 @@ def membrane_interpolation(skin: TriMesh, free: np.ndarray):
     return ids, border, H
 
 
-def footprint_matrix(skin: TriMesh, sigma: float, *, chunk: int = 512) -> sp.csr_matrix:
+def footprint_matrix(skin: TriMesh, sigma, *, chunk: int = 512) -> sp.csr_matrix:
     """Row-normalised geodesic Gaussian ``(V, V)`` sparse matrix (support ``2.5 sigma`` mm).
 
     Geodesic (edge-graph Dijkstra) rather than Euclidean neighbourhoods, so that the upper
     and lower lips, or the two eyelids, do not average across the mouth or eye openings.
+    ``sigma`` (mm) is a scalar or one value per vertex (the width of that vertex's row).
     """
     V = skin.n_vertices
+    sig = np.broadcast_to(np.asarray(sigma, np.float64), (V,))
+    if not np.all(np.isfinite(sig)) or sig.min() <= 0:
+        raise RigError("the tissue footprint's sigma must be positive and finite (mm).")
     g = _edge_matrix(skin, np.maximum(_edge_lengths(skin), 1e-9))
-    lim = 2.5 * sigma
     rows, cols, vals = [], [], []
     for s in range(0, V, chunk):
         ids = np.arange(s, min(V, s + chunk))
-        D = dijkstra(g, directed=False, indices=ids, limit=lim)
-        r, c = np.nonzero(np.isfinite(D))
+        sr = sig[ids]
+        D = dijkstra(g, directed=False, indices=ids, limit=2.5 * float(sr.max()))
+        keep = np.isfinite(D) & (D <= 2.5 * sr[:, None])
+        r, c = np.nonzero(keep)
         rows.append(ids[r])
         cols.append(c)
-        vals.append(np.exp(-0.5 * (D[r, c] / sigma) ** 2))
+        vals.append(np.exp(-0.5 * (D[r, c] / sr[r]) ** 2))
     M = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(V, V))
     rs = np.asarray(M.sum(axis=1)).ravel()
     return sp.diags(1.0 / np.maximum(rs, 1e-300)) @ M
+
+
+def footprint_sigma(skin: TriMesh, frame: FaceFrame, footprint_mm) -> np.ndarray:
+    """``(V,)`` sigma (mm) of the tissue footprint of each vertex.
+
+    ``footprint_mm`` (reference mm, scaled by the face) is one value, or a pair
+    ``(lower, upper)``: ``lower`` up to the height of the inner eye corners, ``upper`` from
+    the height of the inner eyebrows, blended smoothly in between. The pair lets the
+    forehead, where the tissue moves as a broad plate over the frontalis, spread a muscle's
+    pull further than around the eyes, the cheeks and the mouth, where it stays local.
+
+    Raises:
+        RigError: not a positive number or a pair of positive numbers.
+    """
+    fp = np.atleast_1d(np.asarray(footprint_mm, np.float64))
+    if fp.shape not in ((1,), (2,)) or not np.all(np.isfinite(fp)) or fp.min() <= 0:
+        raise RigError(f"footprint_mm must be a positive number or a (lower, upper) pair of "
+                       f"positive numbers (reference mm), got {footprint_mm!r}.")
+    V = skin.n_vertices
+    if fp.size == 1 or fp[0] == fp[1]:
+        return np.full(V, fp[0] * frame.mean_scale)
+    y = frame.to_local(skin.vertices)[:, 1]
+
+    def height(*names):
+        return float(np.mean([frame.to_local(frame.points[n])[1] for n in names]))
+
+    y0 = height("Inner left eye corner", "Inner right eye corner")
+    y1 = height("Inner left eyebrow", "Inner right eyebrow")
+    t = _smoothstep(np.clip((y - y0) / max(y1 - y0, 1e-9), 0.0, 1.0))
+    return (fp[0] + (fp[1] - fp[0]) * t) * frame.mean_scale
 
 
 def eyelid_vertices(skin: TriMesh, frame: FaceFrame, side: str, threshold: float = 0.04):
@@ -396,7 +433,8 @@ def build_skin_system(skin: TriMesh, frame: FaceFrame, binding: Binding, support
             where ``angles[c] = (upper_deg, lower_deg)`` per control ``c`` (0 for non-eyelid
             controls).
         teeth: ``(upper, lower)`` teeth meshes or None.
-        footprint_mm: sigma of the tissue footprint, mm.
+        footprint_mm: sigma of the tissue footprint (reference mm), or a ``(lower, upper)``
+            pair (:func:`footprint_sigma`).
         stiffness: overrides of :data:`SKIN_STIFFNESS`.
         bending: include the dihedral bending constraints.
         iterations: static sweeps of the quasi-static solve.
@@ -439,7 +477,7 @@ def build_skin_system(skin: TriMesh, frame: FaceFrame, binding: Binding, support
     if k["volume"] > 0:
         vol = pbd.volume_constraint(tri, x, origin=head_centre(frame), stiffness=k["volume"])
     # footprint
-    F = footprint_matrix(skin, footprint_mm * frame.mean_scale).tocoo()
+    F = footprint_matrix(skin, footprint_sigma(skin, frame, footprint_mm)).tocoo()
     # eyelids
     lid_ids, lid_fall, lid_upper, lid_side, piv, axs, angs = [], [], [], [], [], [], []
     for (ids, fall, upper, side, pivot, axis, angles) in eyelids:
