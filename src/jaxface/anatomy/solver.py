@@ -20,12 +20,12 @@ as *one* vectorised block instead:
 
 :func:`iterate` runs a fixed number of sweeps, plain or with Chebyshev semi-iterative
 acceleration (the skin solve's option ``SkinSystem.chebyshev_rho``). Measured on the ICT face
-(``benchmarks/bench_synth.py --expressions``, 2-core CPU): 64 muscle / 96 skin sweeps with the
-acceleration (rho 0.98) take 198 ms and end within 0.002 mm of a 3,000 / 400-sweep plain solve
-for the smile + jaw case, and with 99% of the vertices within 0.005 mm for each of the six
-emotions, a jaw opening and every control at 1. The exception is three lip vertices against the
-teeth in the last two cases: they settle 0.40 mm from where the plain solve puts them. The
-default 32 / 8 plain sweeps (31 ms) are 1.3 mm off at most.
+(``benchmarks/bench_synth.py --expressions``, 2-core CPU): 48 muscle / 80 skin sweeps with the
+acceleration (rho 0.98) take 164 ms and end within 0.05 mm of a 3,000 / 400-sweep plain solve
+for each of the six emotions, a jaw opening and every control at 1; 64 / 96 sweeps take 195 ms
+and end within 0.002 mm. The exception is three lip vertices against the teeth in the last two
+cases: they settle 0.40 mm from where the plain solve puts them. The default 32 / 8 plain
+sweeps (31 ms) are 1.5 mm off at most.
 
 Everything is pure JAX: jit-able, vmap-able, differentiable in positions, anchor targets,
 stiffness and rest values. Units: mm (positions), inverse masses 1/g.

@@ -160,10 +160,21 @@ def _safe_name(s: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", s).strip("_") or "expression"
 
 
+#: Named solve depths of ``--sweeps`` (muscle sweeps, skin sweeps, skin Chebyshev rho), with
+#: their distance to a 3,000 / 400-sweep plain solve on the ICT face (the six emotions, AU26
+#: and every control at 1; ``benchmarks/bench_synth.py --expressions``, 2-core CPU).
+SWEEP_PRESETS = {
+    "fast": (32, 8, 0.0),        # the default: ~31 ms, up to 1.5 mm off
+    "converged": (48, 80, 0.98),  # ~164 ms, within 0.05 mm (3 lip-teeth vertices 0.4 mm)
+    "reference": (64, 96, 0.98),  # ~195 ms, within 0.002 mm (the same 3 vertices 0.4 mm)
+}
+
+
 def parse_sweeps(text: str) -> tuple[int, int, float]:
     """``"MUSCLE/SKIN[/RHO]"``: sweep counts of the quasi-static solve and, optionally, the
     Chebyshev spectral-radius estimate of the skin solve (0 = plain sweeps), e.g. ``"384/16"``
-    or ``"384/32/0.97"``.
+    or ``"384/32/0.97"``; or a name of :data:`SWEEP_PRESETS` (``fast``, ``converged``,
+    ``reference``).
 
     Returns:
         ``(muscle_sweeps, skin_sweeps, skin_rho)``.
@@ -173,8 +184,12 @@ def parse_sweeps(text: str) -> tuple[int, int, float]:
     """
     from ..errors import RigError
 
+    key = str(text).strip().lower()
+    if key in SWEEP_PRESETS:
+        return SWEEP_PRESETS[key]
     parts = str(text).replace(" ", "").split("/")
-    hint = "give MUSCLE/SKIN sweep counts, optionally /RHO for the skin's Chebyshev acceleration, e.g. 384/16 or 384/32/0.97."
+    hint = ("give MUSCLE/SKIN sweep counts, optionally /RHO for the skin's Chebyshev acceleration, "
+            f"e.g. 384/16 or 384/32/0.97, or one of {', '.join(SWEEP_PRESETS)}.")
     try:
         if len(parts) not in (2, 3):
             raise ValueError
@@ -224,11 +239,13 @@ def register(app: typer.Typer) -> None:
         pictures: bool = typer.Option(True, "--pictures/--no-pictures", help="Write a PNG per expression."),
         sweeps: Optional[str] = typer.Option(  # noqa: UP007
             None, "--sweeps", help="Quasi-static solve of the pbd backend as MUSCLE/SKIN sweeps (default "
-            "32/8, ~30 ms on the ICT face, up to 1.3 mm from the converged face). An optional third "
+            "32/8, ~30 ms on the ICT face, up to 1.5 mm from the converged face). An optional third "
             "number turns on the Chebyshev acceleration of the skin solve with that spectral-radius "
-            "estimate: 64/96/0.98 (~200 ms) puts 99% of the vertices within 0.005 mm of the converged "
-            "face (python benchmarks/bench_synth.py --sweeps 32/8,64/96/0.98 --expressions). "
-            "More plain sweeps, e.g. 3000/400, give a reference."),
+            "estimate. Presets: 'converged' = 48/80/0.98 (~165 ms, within 0.05 mm of the converged "
+            "face), 'reference' = 64/96/0.98 (~195 ms, within 0.002 mm); both leave 3 lip vertices "
+            "at another contact with the teeth, 0.4 mm away (python benchmarks/bench_synth.py "
+            "--sweeps 48/80/0.98,64/96/0.98 --expressions). More plain sweeps, e.g. 3000/400, give "
+            "the plain solve's own fixed point."),
         compare_backends: bool = typer.Option(
             False, "--compare-backends", help="Also build the other backend's rig on the same face and write "
             "backends_emotions.png: the six emotions, PBD next to LTW, with their distance (mm) as a heat map."),
