@@ -38,16 +38,16 @@ from .skin import SkinSystem, bind_skin, build_skin_system, eyelid_vertices, inf
 from .skull import Skull, estimate_skull
 
 JAW_FOLLOW_MM = (30.0, 100.0)
-
 """Default ``(full, reach)`` distances from the chin of the jaw's pull on the soft tissue,
 reference mm (:func:`jaw_follow_weights`)."""
 
 #: Default sigma of the tissue footprint, reference mm (one value for the whole face).
 #: A ``(lower, upper)`` pair widens it over the forehead
-#: (:func:`~jaxface.anatomy.skin.footprint_sigma`): ``(5, 12)`` fits the Bosphorus-style
-#: brow scans better (UFAU_1 0.21 -> 0.17 mm, UFAU_2 0.43 -> 0.39 mm) but blurs the
-#: corrugator into its neighbours, so that the synthetic round trip recovers it only within
-#: 0.09 instead of 0.035; it is therefore not the default.
+#: (:func:`~jaxface.anatomy.skin.footprint_sigma`). ``(5, 12)`` fits the Bosphorus-style
+#: scans better on average (0.878 against 0.890 mm; brow raisers UFAU_1 0.21 -> 0.16 mm and
+#: UFAU_2 0.43 -> 0.41 mm on bs900, the brow lowerer UFAU_4 0.46 -> 0.47 mm) but blurs the
+#: corrugator into its neighbours: the synthetic round trip then recovers it within 0.086
+#: instead of 0.031. So it is not the default (``benchmarks/bench_fit.py``).
 FOOTPRINT_MM = 5.0
 
 __all__ = ["FOOTPRINT_MM", "JAW_FOLLOW_MM", "Rig", "RigInfo", "SynthState", "build_rig", "jaw_follow_weights", "synthesize",
@@ -200,8 +200,9 @@ def build_rig(skin, landmarks=None, skull: Skull | None = None, muscle_map=None,
             skull's).
         muscle_iterations, skin_iterations: static sweeps of the quasi-static solves.
         footprint_mm: sigma of the tissue footprint (reference mm), or a ``(lower, upper)``
-            pair: the lower face up to the nose tip, the upper face from the inner eye
-            corners, blended between (:func:`~jaxface.anatomy.skin.footprint_sigma`).
+            pair: ``lower`` up to the inner eye corners, ``upper`` from the inner eyebrows up,
+            blended in between (:func:`~jaxface.anatomy.skin.footprint_sigma`; see
+            :data:`FOOTPRINT_MM` for what ``(5, 12)`` does to the fits).
         influence_radius: influence-map falloff in normalised geodesic distance.
         eyelid_threshold: normalised geodesic distance of the eyelid region (thesis 0.04).
         bending: include the skin's dihedral bending constraints (thesis 0.95; off by default:
