@@ -144,3 +144,24 @@ def test_error_mapping_to_exit_codes():
     res = runner.invoke(app, ["other"])
     assert res.exit_code == EXIT_ERROR and "internal error" in res.output and "--debug" in res.output
     assert "Traceback" not in res.output
+
+
+def test_fit_command_defaults_are_the_librarys():
+    """``jaxface fit`` spells its defaults out for ``--help`` (the CLI imports the library
+    lazily); they must stay those of FitOptions and SubjectOptions."""
+    from jaxface.commands import fit
+    from jaxface.fit.pipeline import SubjectOptions
+    from jaxface.fit.solve import FitOptions
+
+    app = typer.Typer()
+    fit.register(app)
+    cmd = typer.main.get_command(app)
+    defaults = {p.name: p.default for p in cmd.params}
+    fo, so = FitOptions(), SubjectOptions()
+    assert defaults["points"] == fo.n_points
+    assert defaults["outer_iterations"] == fo.outer_iterations
+    assert defaults["max_steps"] == fo.max_steps
+    assert defaults["exact_steps"] == fo.exact_steps
+    assert defaults["levels"] == so.levels
+    assert defaults["pitch_knots"] == so.pitch_knots
+    assert defaults["backend"] == so.backend

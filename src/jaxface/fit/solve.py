@@ -1380,6 +1380,7 @@ def _exact_refine(forward, fit_ids, y, pts: PointSet, priors: Priors, opt: FitOp
     cost = jax.jit(lambda yy, args: sum(jnp.sum(v * v) for v in jax.tree_util.tree_leaves(resid(yy, args))))
     solver = optx.LevenbergMarquardt(rtol=opt.rtol, atol=opt.atol)
     c0 = float(cost(y, (pts, priors)))
+
     def run(y0, args):
         sol = optx.least_squares(resid, solver, y0, args=args, max_steps=int(opt.exact_steps), throw=False)
         return sol.value, sol.result._value, sol.stats["num_steps"]   # arrays only out of the jit
