@@ -107,6 +107,45 @@ def test_bending_alone_reaches_rest_angle():
         assert abs(got - rest) < TOL, (start, got)
 
 
+def test_a_collapsed_hinge_is_inert_and_its_reverse_pass_stays_finite_in_float32():
+    """A hinge whose shared edge has collapsed to 4e-7 mm between 5 mm wings (seen in the
+    orbicularis oris of the default head, where two ring particles sit on one surface point)
+    is degenerate at float32 precision: its constraint must be inert, and the reverse pass of
+    its projection finite (with the old absolute eps^2 threshold it was active, folded at
+    2.9 rad against a rest of 0, and its squared gradients of ~2e7 / mm overflowed into NaN)."""
+    x = np.array([[-2.7e-7, -40.896, 103.086], [1.7e-7, -40.896, 103.086],
+                  [-4.945, -40.389, 102.477], [6.821, -40.298, 101.865]], np.float32)
+    S = pbd.build_system({"b": pbd.bending_constraints([[0, 1, 2, 3]], rest=[0.0])}, 4)
+    C, _, _ = pbd.bending_constraints([[0, 1, 2, 3]], rest=[0.0]).terms(
+        [jnp.asarray(x[k][:, None]) for k in range(4)])
+    assert float(C[0]) == 0.0
+    f = lambda y: jnp.sum(pbd.project(S, y, iterations=2) ** 2)  # noqa: E731
+    g = np.asarray(jax.grad(f)(jnp.asarray(x)))
+    assert g.dtype == np.float32 and np.all(np.isfinite(g))
+    # the inert hinge leaves the points where they are: d f / d x = 2 x
+    np.testing.assert_allclose(g, 2 * x, rtol=1e-6)
+    # the same wings about a 1 mm edge: an active constraint with a finite reverse pass
+    y = x.copy()
+    y[0, 0], y[1, 0] = -0.5, 0.5
+    C1, _, _ = pbd.bending_constraints([[0, 1, 2, 3]], rest=[0.0]).terms(
+        [jnp.asarray(y[k][:, None]) for k in range(4)])
+    assert abs(float(C1[0])) > 1.0
+    g1 = np.asarray(jax.grad(f)(jnp.asarray(y)))
+    assert np.all(np.isfinite(g1)) and not np.allclose(g1, 2 * y)
+
+
+def test_a_hinge_degenerate_at_rest_gets_no_stiffness():
+    """Built from rest positions, a hinge that is degenerate there (coincident edge ends, or
+    a wing along the edge's line) has no rest angle and is kept inert (stiffness 0); the
+    others keep the given stiffness."""
+    v = hinge(0.7)
+    v = np.vstack([v, v[0] + [1e-9, 0, 0], v[0] + [1.0, 0, 0]])   # 4: on a; 5: on the edge line
+    rows = [[0, 1, 2, 3], [0, 4, 2, 3], [0, 1, 2, 5]]
+    g = pbd.bending_constraints(rows, v, stiffness=0.6)
+    np.testing.assert_array_equal(np.asarray(g.stiffness), [0.6, 0.0, 0.0])
+    assert abs(float(g.rest[0])) == pytest.approx(0.7, abs=1e-12)
+
+
 def test_dihedral_angle_and_bending_gradient_match_autodiff():
     rng = np.random.default_rng(1)
     P = rng.normal(size=(8, 4, 3))

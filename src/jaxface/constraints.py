@@ -129,16 +129,36 @@ def dihedral_angle(a, b, c, d):
     return theta
 
 
+def _hinge_ok(L2, n1s, n2s, w1s, w2s, r):
+    """Non-degenerate hinges: a shared edge (squared length ``L2``) and two wings (squared
+    lengths ``w1s = |c - a|^2``, ``w2s = |d - b|^2``, normals ``|n|^2 = n1s, n2s``) that are
+    not negligible relative to each other, at relative precision ``r`` (squared ratios).
+
+    Scale-free on purpose: an absolute threshold (``eps^2`` mm^2) let a hinge whose edge had
+    collapsed to 4e-7 mm next to 5 mm wings through, and the reverse pass of its projection
+    (squared gradients of ~1e7 / mm) overflowed float32 into NaN.
+    """
+    # a zero edge or zero wings fail the normal tests (0 > 0), so no absolute floor is needed
+    return (L2 > r * (w1s + w2s)) & (n1s > r * L2 * w1s) & (n2s > r * L2 * w2s)
+
+
 def _bend_geometry(a, b, c, d):
-    """theta (m,), ok mask, and the pieces for the gradient, for (3, m) inputs."""
-    tiny = _tiny(a.dtype)
+    """theta (m,), ok mask, and the pieces for the gradient, for (3, m) inputs.
+
+    ``ok`` is False (theta 0, zero gradient) for a degenerate hinge (:func:`_hinge_ok` at
+    the precision ``eps`` of the dtype: an edge shorter than ``sqrt(eps)`` times the wings,
+    or a wing within ``sqrt(eps)`` rad of the edge's line).
+    """
+    r = float(jnp.finfo(a.dtype).eps)
     e = b - a
-    n1 = _cross(e, c - a)
-    n2 = _cross(a - b, d - b)
+    ca = c - a
+    db = d - b
+    n1 = _cross(e, ca)
+    n2 = _cross(a - b, db)
     L2 = _dot(e, e)
     n1s = _dot(n1, n1)
     n2s = _dot(n2, n2)
-    ok = (L2 > tiny) & (n1s > tiny * L2) & (n2s > tiny * L2)
+    ok = _hinge_ok(L2, n1s, n2s, _dot(ca, ca), _dot(db, db), r)
     L = _safe_sqrt(L2, ok)
     y = _dot(_cross(n1, n2), e)
     xx = L * _dot(n1, n2)
@@ -535,6 +555,13 @@ class BendingConstraints(Constraints):
                 raise MeshError("bending constraints need x_rest or rest.", problem="shape")
             x = _as_float(x_rest, name="x_rest")
             rest = _np_dihedral(x, idx)
+            # a hinge degenerate at rest (e.g. two particles of a muscle ring placed on the
+            # same surface point) has no rest angle: it is kept, inert (stiffness 0)
+            flat = ~_np_hinge_ok(x, idx)
+            if flat.any():
+                k = np.broadcast_to(np.asarray(stiffness, np.float64), (idx.shape[0],)).copy()
+                k[flat] = 0.0
+                stiffness = k
         rest = _as_float(rest, (idx.shape[0],), "bending rest")
         return cls(rest=to_jax(rest), **_base_fields(idx, stiffness, compliance, "bending"))
 
@@ -553,6 +580,24 @@ class BendingConstraints(Constraints):
         C = jnp.where(ok, _wrap(theta - self.rest), 0.0)
         grads = (ga, gb, gc, gd)
         return C, grads, tuple(_dot(g, g) for g in grads)
+
+
+#: Relative precision (squared length ratio) below which a rest hinge counts as degenerate
+#: at build time: float32's eps, so that a hinge the float32 solve treats as degenerate is
+#: never given a rest angle.
+REST_HINGE_PRECISION = float(np.finfo(np.float32).eps)
+
+
+def _np_hinge_ok(x, idx) -> np.ndarray:
+    """``(M,)`` bool: the rest hinges ``x[idx]`` are not degenerate (:func:`_hinge_ok`)."""
+    a, b, c, d = (np.asarray(x, np.float64)[idx[:, k]] for k in range(4))
+    e, ca, db = b - a, c - a, d - b
+    n1 = np.cross(e, ca)
+    n2 = np.cross(a - b, db)
+    dot = lambda u, v: np.einsum("ij,ij->i", u, v)  # noqa: E731
+    L2, S1, S2 = dot(e, e), dot(ca, ca), dot(db, db)
+    r = REST_HINGE_PRECISION
+    return (L2 > r * (S1 + S2)) & (dot(n1, n1) > r * L2 * S1) & (dot(n2, n2) > r * L2 * S2)
 
 
 def _np_dihedral(x, idx):
