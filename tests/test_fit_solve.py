@@ -265,8 +265,11 @@ def test_fit_rejects_unknown_controls(round_trip):
 
 
 def test_batch_fit_matches_single_fits_in_input_order(round_trip):
-    """A batch (alignment and evaluation of the scans on the outer thread pool, one vmapped
-    solve) returns one fit per scan, in input order, each the fit the scan gets alone."""
+    """A batch (alignment and evaluation of the scans on the outer thread pool, one batched
+    solve) returns one fit per scan, in input order, each the fit the scan gets alone: to
+    rounding, since a scan whose active set has settled is not re-solved with the others
+    (it was, and a real scan's fit then moved by up to 0.04 mm of truth error with the
+    batch it was in)."""
     from jaxface.fit.pipeline import fit_expressions
 
     subject, res, _, opt, expr, neutral = round_trip
@@ -275,8 +278,8 @@ def test_batch_fit_matches_single_fits_in_input_order(round_trip):
     assert [f.stem for f in batch] == seen and len(batch) == 2
     rest_fit, expr_fit = batch
     for n, v in res.activations.items():
-        assert abs(expr_fit.activations[n] - v) < 0.02, (n, expr_fit.activations[n], v)
-    assert abs(expr_fit.jaw["pitch_deg"] - res.jaw["pitch_deg"]) < 0.2
+        assert abs(expr_fit.activations[n] - v) < 1e-9, (n, expr_fit.activations[n], v)
+    assert abs(expr_fit.jaw["pitch_deg"] - res.jaw["pitch_deg"]) < 1e-9
     assert expr_fit.metrics.scan_to_fit["all"].mean < 0.1
     # the neutral scan of the batch is fitted with (almost) nothing contracted and the jaw closed
     assert max(rest_fit.activations.values()) < 0.05 and abs(rest_fit.jaw["pitch_deg"]) < 0.5
@@ -362,3 +365,49 @@ def test_gradient_correction_gives_the_exact_rigs_gradient(round_trip):
         off.append(abs(g_reduced[j] - fd))
     # the reduced model's own gradient is measurably different there (measured: 30-50 %)
     assert max(off) > 5 * tol, (off, tol)
+
+
+def test_bound_flip_restart_leaves_a_minimum_with_a_saturated_control(tmp_path):
+    """A fit trapped with a control at its upper bound, and the restart that frees it.
+
+    With a passive sheet of superficial cheek tissue (SMAS) added to the default map, the
+    round trip of ``bench_fit`` (eight controls and the jaw, all controls fitted) ended,
+    before the restart existed, 0.053 mm from its scan with levator anguli oris L at 1.0
+    (true 0) and depressor anguli oris L at 0 (true 0.4): a minimum of the fit, not a lack of
+    distinguishability (the Jacobian's condition number there was 42). The restart run must
+    win over the run it restarted, and recover the truth."""
+    import json
+
+    from jaxface.anatomy.jaw import JawPose
+    from jaxface.anatomy.muscle_map import default_muscle_map_path
+    from jaxface.anatomy.rig import build_rig, synthesize
+    from jaxface.fit.pipeline import SubjectOptions, fit_expressions, subject_from_rig
+    from jaxface.head import generic_head
+    from jaxface.io.scanner import SkinLandmarks, scan_skin
+
+    spec = json.loads(default_muscle_map_path().read_text())
+    spec["muscles"].append({
+        "name": "smas", "sides": "both", "kind": "passive", "aus": [], "layer": 4,
+        "lies_on": ["orbicularis_oris", "zygomaticus_major", "risorius", "depressor_anguli_oris",
+                    "levator_anguli_oris", "cheek_fat", "masseter", "buccinator", "platysma", "skull"],
+        "width": [60, 24], "grid": [5, 7], "thickness": 10.0,
+        "origin": {"at": {"Outer left eye corner": 1}, "offset": [26, -38, 0]},
+        "insertion": {"at": {"Left mouth corner": 1}, "offset": [6, 2, 0]}})
+    path = tmp_path / "smas.json"
+    path.write_text(json.dumps(spec))
+    head = generic_head()
+    rig = build_rig(head, muscle_map=path)
+    bound = SkinLandmarks.of_rig(rig)
+    truth = {"zygomaticus_major_L": 0.6, "zygomaticus_major_R": 0.45, "frontalis_medial_L": 0.5,
+             "frontalis_medial_R": 0.5, "corrugator_R": 0.3, "orbicularis_oris": 0.25,
+             "depressor_anguli_oris_L": 0.4, "levator_labii_superioris_alaeque_nasi_R": 0.35}
+    x = np.asarray(synthesize(rig, rig.activations(truth), JawPose(6.0, 1.0, 1.0)))
+    subject = subject_from_rig(rig, scan_skin(np.asarray(rig.rest), bound), face_mask=head.face_mask,
+                               options=SubjectOptions())
+    (res,) = fit_expressions(subject, [scan_skin(x, bound)], options=FitOptions(restart_iterations=4))
+    r = res.fit.restart
+    assert r and r["kept"] and r["cost_mm2"] < r["parent_cost_mm2"], r
+    assert "levator_anguli_oris_L" in r["controls"] and res.solver_dict()["restart"]["kept"]
+    assert res.metrics.scan_to_fit["all"].mean < 0.01
+    for n in subject.muscle_names:
+        assert abs(res.activations[n] - truth.get(n, 0.0)) < 0.05, (n, res.activations[n])

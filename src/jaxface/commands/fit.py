@@ -158,6 +158,11 @@ def register(app: typer.Typer) -> None:
         max_steps: int = typer.Option(40, "--max-steps", min=1, help="Levenberg-Marquardt steps per inner solve."),
         exact_steps: int = typer.Option(0, "--exact-steps", min=0,
                                         help="Final LM steps through the exact rig (slow: a rig Jacobian each)."),
+        restart_iterations: int = typer.Option(
+            0, "--restart-iterations", min=0,
+            help="Bound-flip restart: a fit with activations at 1 is fitted again for this many outer "
+                 "iterations with them back near 0; the lower cost wins (0 = off; 4 escapes the "
+                 "saturated minima seen in synthetic round trips; slower)."),
         levels: int = typer.Option(4, "--levels", min=1, help="Activation knots of the rig's reduced model."),
         pitch_knots: int = typer.Option(12, "--pitch-knots", min=3, help="Jaw pitch knots of the reduced model."),
         batch_size: Optional[int] = typer.Option(  # noqa: UP007
@@ -188,7 +193,7 @@ def register(app: typer.Typer) -> None:
         from ..fit.solve import FitOptions
 
         opts = FitOptions(n_points=points, outer_iterations=outer_iterations, max_steps=max_steps,
-                          exact_steps=exact_steps)
+                          exact_steps=exact_steps, restart_iterations=restart_iterations)
         sopts = SubjectOptions(backend=backend, levels=levels, pitch_knots=pitch_knots)
         t0 = time.perf_counter()
         prog = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),

@@ -472,6 +472,7 @@ class ExpressionFit:
             "jaw_as_fitted": {"pitch_deg": float(f.jaw[0]), "yaw_deg": float(f.jaw[1]),
                               "protrusion_mm": float(f.jaw[2])},
             "residual_mm": f.residual_mm,
+            "restart": dict(f.restart) if f.restart else None,
             "notes": list(self.notes),
         }
 
