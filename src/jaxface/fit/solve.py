@@ -194,9 +194,8 @@ class FitOptions:
             one control at 1 instead of 0, and with 4 restart iterations within 0.003 mm and
             0.03 of every activation. Off by default: on the Bosphorus-style scans (model
             mismatch) the restarts found lower scan costs but not lower truth errors (mean
-            0.897 against 0.890 mm with 2). Cost with 2, a batch of the 11 scans of bs900:
-            52.8 s against 48.3 s warm; the first restart batch, of another size, compiles
-            the solver once more (about 12 s).
+            0.897 against 0.890 mm with 2; LFAU_20 1.066 against 1.003 on bs900). Cost with
+            2, a warm batch of the 11 scans of bs900 in float64: 78.3 s against 58.4 s.
     """
 
     n_points: int = 1000
