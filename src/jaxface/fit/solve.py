@@ -1350,7 +1350,7 @@ def fit_points(
             progress(f"outer iteration {k + 1}/{outer}: cost {np.mean(cost):.4f} mm^2, steps {steps}")
 
     # bound-flip restarts: a run with activations at the upper bound starts again from there
-    # with those activations back at their starting value and every activation free
+    # with those activations back at RESTART_ACTIVATION and every activation free
     n_restart = max(int(opt.restart_iterations), 0)
     spawned = []
     if n_restart:
