@@ -595,9 +595,7 @@ def _np_hinge_ok(x, idx) -> np.ndarray:
     n1 = np.cross(e, ca)
     n2 = np.cross(a - b, db)
     dot = lambda u, v: np.einsum("ij,ij->i", u, v)  # noqa: E731
-    L2, S1, S2 = dot(e, e), dot(ca, ca), dot(db, db)
-    r = REST_HINGE_PRECISION
-    return (L2 > r * (S1 + S2)) & (dot(n1, n1) > r * L2 * S1) & (dot(n2, n2) > r * L2 * S2)
+    return _hinge_ok(dot(e, e), dot(n1, n1), dot(n2, n2), dot(ca, ca), dot(db, db), REST_HINGE_PRECISION)
 
 
 def _np_dihedral(x, idx):

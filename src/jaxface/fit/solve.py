@@ -1229,11 +1229,14 @@ def fit_points(
     parent = list(range(R_))          # the run a restart run was spawned from (itself if none)
     flipped: dict[int, tuple[int, ...]] = {}
 
+    def z_of(i):
+        """Run ``i``'s parameters ``z`` with the held activations at their bounds."""
+        return np.where(free[i] > 0, np.asarray(ys[i]["z"]), zfix[i])
+
     def exact_skins(ids):
         A, J = [], []
         for i in ids:
-            z = np.where(free[i] > 0, np.asarray(ys[i]["z"]), zfix[i])
-            A.append(np.asarray(activations_from_z(to_jax(z))))
+            A.append(np.asarray(activations_from_z(to_jax(z_of(i)))))
             J.append(np.asarray(ys[i]["jaw"]))
         X = forward.many(np.stack(A), np.stack(J))
         out = []
@@ -1355,15 +1358,13 @@ def fit_points(
     spawned = []
     if n_restart:
         for i in range(R_):
-            a_i = np.asarray(activations_from_z(to_jax(np.where(free[i] > 0, np.asarray(ys[i]["z"]), zfix[i]))))
-            hi = (a_i >= 1.0 - RESTART_BOUND_TOL) & ~locked
+            z = z_of(i)   # locked controls are held at z = 0
+            hi = (np.asarray(activations_from_z(to_jax(z))) >= 1.0 - RESTART_BOUND_TOL) & ~locked
             if not hi.any():
                 continue
             j = len(runs)
             runs.append(runs[i])
-            z = np.where(free[i] > 0, np.asarray(ys[i]["z"]), z_from_activations(np.clip(a_i, 0.0, 1.0)))
             z = np.where(hi, float(z_from_activations(RESTART_ACTIVATION)), z)
-            z = np.where(locked, 0.0, z)
             y = dict(ys[i])
             y["z"] = to_jax(z)
             ys.append(y)
@@ -1397,7 +1398,7 @@ def fit_points(
         cand = [i for i, (ss, _) in enumerate(runs) if ss == s_]
         i = cand[int(np.argmin([finals[j][1] for j in cand]))]
         y = dict(ys[i])
-        y["z"] = jnp.where(to_jax(free[i]) > 0, y["z"], to_jax(zfix[i]))
+        y["z"] = to_jax(z_of(i))
         c = finals[i][0]
         ok = c.weight > 0
         d = np.abs(c.distance[ok])
