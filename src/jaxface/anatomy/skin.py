@@ -17,6 +17,11 @@ Build time (NumPy):
   the brows, :func:`footprint_sigma`) of the displacements of the surface points bound around
   it, a model of the fat layer that spreads a muscle's pull over the skin (without it the skin
   would shear sharply along every muscle border);
+* **fat volume** (our addition, after the volume preservation of Lee, Terzopoulos and Waters
+  1995): the offset ``p0 - sp0`` is the fat between the skin and its surface point; where the
+  bound surface points around a vertex squeeze together its fat thickens, where they spread it
+  thins, keeping area x thickness (:func:`fat_thickness`, gain ``fat_volume``, one value or a
+  ``(lower, upper)`` pair like the footprint);
 * **influence map**: ``w = 1 - smoothstep(d / radius)`` of the normalised geodesic distance
   ``d`` from the vertices bound to a muscle or to the mandible; it scales each vertex's anchor
   displacement (thesis line 17 scales the particle's displacement; scaling the target keeps
@@ -61,8 +66,13 @@ __all__ = [
     "build_skin_system",
     "skin_targets",
     "solve_skin",
+    "vertex_areas",
+    "fat_thickness",
 ]
 
+#: Range of the fat layer's thickness factor (:func:`fat_thickness`): the layer at most halves
+#: or doubles.
+FAT_RATIO_RANGE = (0.5, 2.0)
 #: Thesis skin stiffness values (sec. 5.5).
 SKIN_STIFFNESS = dict(stretch=0.15, cross=0.15, bend=0.95, area=0.95, anchor=0.2, volume=1.0,
                       damping=0.2)
@@ -276,6 +286,28 @@ def footprint_matrix(skin: TriMesh, sigma, *, chunk: int = 512) -> sp.csr_matrix
     return sp.diags(1.0 / np.maximum(rs, 1e-300)) @ M
 
 
+def _upper_face_blend(skin: TriMesh, frame: FaceFrame) -> np.ndarray:
+    """``(V,)`` in [0, 1]: 0 up to the height of the inner eye corners, 1 from the height of
+    the inner eyebrows, smoothstep in between (the lower/upper split of the face's tissue)."""
+    y = frame.to_local(skin.vertices)[:, 1]
+
+    def height(*names):
+        return float(np.mean([frame.to_local(frame.points[n])[1] for n in names]))
+
+    y0 = height("Inner left eye corner", "Inner right eye corner")
+    y1 = height("Inner left eyebrow", "Inner right eyebrow")
+    return _smoothstep(np.clip((y - y0) / max(y1 - y0, 1e-9), 0.0, 1.0))
+
+
+def _lower_upper(value, name: str, unit: str, *, low: float, high: float = np.inf) -> np.ndarray:
+    """Check one value or a ``(lower, upper)`` pair in ``[low, high]``; returns ``(1,)`` or ``(2,)``."""
+    v = np.atleast_1d(np.asarray(value, np.float64))
+    if v.shape not in ((1,), (2,)) or not np.all(np.isfinite(v)) or v.min() < low or v.max() > high:
+        raise RigError(f"{name} must be a number or a (lower, upper) pair of numbers in "
+                       f"[{low:g}, {high:g}]{unit}, got {value!r}.")
+    return v
+
+
 def footprint_sigma(skin: TriMesh, frame: FaceFrame, footprint_mm) -> np.ndarray:
     """``(V,)`` sigma (mm) of the tissue footprint of each vertex.
 
@@ -295,14 +327,7 @@ def footprint_sigma(skin: TriMesh, frame: FaceFrame, footprint_mm) -> np.ndarray
     V = skin.n_vertices
     if fp.size == 1 or fp[0] == fp[1]:
         return np.full(V, fp[0] * frame.mean_scale)
-    y = frame.to_local(skin.vertices)[:, 1]
-
-    def height(*names):
-        return float(np.mean([frame.to_local(frame.points[n])[1] for n in names]))
-
-    y0 = height("Inner left eye corner", "Inner right eye corner")
-    y1 = height("Inner left eyebrow", "Inner right eyebrow")
-    t = _smoothstep(np.clip((y - y0) / max(y1 - y0, 1e-9), 0.0, 1.0))
+    t = _upper_face_blend(skin, frame)
     return (fp[0] + (fp[1] - fp[0]) * t) * frame.mean_scale
 
 
@@ -360,6 +385,9 @@ class SkinSystem(eqx.Module):
         puff_dir: ``(V, 3)`` cheek-puff displacement per unit pressure, mm.
         mem_ids, mem_border, mem_H: the unsupported skin whose targets are interpolated from
             its border (:func:`membrane_interpolation`): ``(F,)``, ``(B,)``, ``(F, B)``.
+        fat_tri, fat_area0, fat_gain, fat_ratio: the fat layer (:func:`fat_thickness`):
+            ``(T, 3)`` triangles (none when off), ``(V,)`` rest areas mm^2, ``(V,)`` gains,
+            the static ratio range.
         groups: fused stretch/cross, area, bending groups; volume: the skin volume group.
         upper_hull, lower_hull: hull collision groups (or None); lower_planes: rest planes.
         iterations: static sweeps of the quasi-static solve.
@@ -388,6 +416,9 @@ class SkinSystem(eqx.Module):
     mem_ids: jax.Array
     mem_border: jax.Array
     mem_H: jax.Array
+    fat_tri: jax.Array
+    fat_area0: jax.Array
+    fat_gain: jax.Array
     groups: tuple
     volume: object
     upper_hull: object
@@ -395,6 +426,7 @@ class SkinSystem(eqx.Module):
     lower_planes: tuple
     iterations: int = eqx.field(static=True, default=12)
     chebyshev_rho: float = eqx.field(static=True, default=0.0)
+    fat_ratio: tuple = eqx.field(static=True, default=FAT_RATIO_RANGE)
 
     @property
     def n_vertices(self) -> int:
@@ -421,7 +453,8 @@ def build_skin_system(skin: TriMesh, frame: FaceFrame, binding: Binding, support
                       *, influence: np.ndarray, eyelids: list, teeth=(None, None),
                       footprint_mm: float = 3.5, stiffness: dict | None = None,
                       bending: bool = True, iterations: int = 12, lid_stiffness: float = 0.9,
-                      puff_mm: float = 8.0, membrane: np.ndarray | None = None) -> SkinSystem:
+                      puff_mm: float = 8.0, membrane: np.ndarray | None = None,
+                      fat_volume: float = 0.0) -> SkinSystem:
     """Assemble the skin system (NumPy build time).
 
     Args:
@@ -443,7 +476,12 @@ def build_skin_system(skin: TriMesh, frame: FaceFrame, binding: Binding, support
         membrane: optional ``(V,)`` bool, skin with no bone or muscle under it whose targets
             are the harmonic interpolation of the targets around it (a stretched membrane)
             instead of its bound points; it is anchored with stiffness 1.
+        fat_volume: in [0, 1], the fat layer's volume preservation (:func:`fat_thickness`):
+            0 = off, 1 = full; one value, or a ``(lower, upper)`` pair blended like
+            ``footprint_mm``.
     """
+    fv = _lower_upper(fat_volume, "fat_volume", " (0 = off, 1 = the fat layer keeps its volume)",
+                      low=0.0, high=1.0)
     k = dict(SKIN_STIFFNESS)
     k.update(stiffness or {})
     x = skin.vertices
@@ -509,6 +547,14 @@ def build_skin_system(skin: TriMesh, frame: FaceFrame, binding: Binding, support
     mem_ids, mem_border, mem_H = membrane_interpolation(skin, mem)
     anchor_k[mem_ids] = 1.0
     acnt = np.ones(V)
+    fat_gain = (np.full(V, fv[0]) if fv.size == 1 or fv[0] == fv[1]
+                else fv[0] + (fv[1] - fv[0]) * _upper_face_blend(skin, frame)).astype(np.float64)
+    if mem_ids.size:
+        # the membrane has no layer under it; its border, which it is interpolated from, keeps
+        # its rest thickness too (a thickened border bulged the membrane's edge into 2 folds)
+        fat_gain[mem_ids] = 0.0
+        fat_gain[mem_border] = 0.0
+    fat_tri = tri[tkeep] if fv.max() > 0 else np.zeros((0, 3), np.int64)
     return SkinSystem(
         rest=to_jax(x), bind_ids=to_jax(support_ids), bind_w=to_jax(support_w),
         bind_offset=to_jax(x - binding.point),
@@ -524,6 +570,8 @@ def build_skin_system(skin: TriMesh, frame: FaceFrame, binding: Binding, support
         lid_angles=to_jax(np.stack(angs) if angs else np.zeros((0, 1, 2))),
         puff_dir=to_jax(puff),
         mem_ids=to_jax(mem_ids), mem_border=to_jax(mem_border), mem_H=to_jax(mem_H),
+        fat_tri=to_jax(fat_tri), fat_area0=to_jax(vertex_areas(binding.point, fat_tri, V)),
+        fat_gain=to_jax(fat_gain), fat_ratio=tuple(float(v) for v in FAT_RATIO_RANGE),
         groups=tuple(groups), volume=vol, upper_hull=up_g, lower_hull=lo_g,
         lower_planes=(None if lo_planes is None else (to_jax(lo_planes[0]), to_jax(lo_planes[1]))),
         iterations=int(iterations),
@@ -543,14 +591,19 @@ def _rotate(p, pivot, axis, ang):
 def skin_targets(sk: SkinSystem, G, activations, cheek_puff=0.0):
     """Anchor targets ``(V, 3)`` mm of the skin for the current support ``G``.
 
-    Bound surface points evaluated on ``G``, displacements averaged over the tissue
+    Bound surface points evaluated on ``G``, offsets scaled by the fat layer's thickness
+    (:func:`fat_thickness`), displacements averaged over the tissue
     footprint and scaled by the influence map, the membrane skin interpolated from its border,
     eyelid rotations and cheek puff added.
     """
     dt = G.dtype
     rest = sk.rest.astype(dt)
     sp_ = jnp.einsum("vk,vkd->vd", sk.bind_w.astype(dt), G[sk.bind_ids])
-    disp = sp_ + sk.bind_offset.astype(dt) - rest
+    offset = sk.bind_offset.astype(dt)
+    if sk.fat_tri.shape[0]:
+        fat = fat_thickness(sp_, sk.fat_tri, sk.fat_area0, sk.fat_gain, sk.fat_ratio)
+        offset = offset * fat[:, None]
+    disp = sp_ + offset - rest
     disp = jax.ops.segment_sum(sk.fp_vals.astype(dt)[:, None] * disp[sk.fp_cols], sk.fp_rows,
                                num_segments=rest.shape[0])
     disp = disp * sk.influence.astype(dt)[:, None]
@@ -565,6 +618,50 @@ def skin_targets(sk: SkinSystem, G, activations, cheek_puff=0.0):
         disp = disp.at[sk.lid_ids].add(rot - p0)
     disp = disp + jnp.asarray(cheek_puff, dt) * sk.puff_dir.astype(dt)
     return rest + disp
+
+
+def vertex_areas(points, tri, n: int, xp=np):
+    """``(n,)`` mm^2: the summed area of the triangles ``tri`` ``(T, 3)`` around each vertex,
+    with the vertices at ``points`` ``(n, 3)`` mm. NumPy (``xp=np``) or JAX (``xp=jnp``)."""
+    if tri.shape[0] == 0:
+        return xp.zeros(n)
+    p = points[tri]                                                        # (T, 3, 3)
+    c = xp.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    a = 0.5 * xp.sqrt(xp.sum(c * c, axis=1) + 1e-24)
+    if xp is np:
+        return np.bincount(tri.ravel(), weights=np.repeat(a, 3), minlength=n)
+    return jax.ops.segment_sum(jnp.repeat(a, 3), tri.reshape(-1), num_segments=n)
+
+
+def fat_thickness(surface_points, tri, area0, gain, ratio_range=FAT_RATIO_RANGE):
+    """``(V,)`` factor on each skin vertex's tissue offset (the fat between the skin and the
+    surface point it is bound to) that keeps the fat layer's volume.
+
+    A prism of the layer with base area ``A`` and height ``h`` keeps ``A h`` when its base is
+    squeezed or stretched: the volume preservation of Lee, Terzopoulos and Waters (1995),
+    applied to the layer under the skin. ``A`` is the area of the bound surface points around
+    the vertex over the skin's triangles, so where a muscle shortens, or the tissue ahead of a
+    pulled mouth corner bunches up, the skin above it rises, and where the surface stretches
+    (the lips around a widened mouth, the cheeks over an opened jaw) it sinks.
+
+    The factor is ``(A0 / A) ** gain`` with ``A0 / A`` clipped to ``ratio_range``. A vertex in
+    no triangle (``area0 = 0``) keeps 1. Zero-area triangles are safe (no NaN, also in the
+    reverse pass).
+
+    Arguments:
+        surface_points: ``(V, 3)`` mm, the current bound surface points.
+        tri: ``(T, 3)`` skin triangles.
+        area0: ``(V,)`` mm^2, :func:`vertex_areas` of the rest surface points.
+        gain: ``(V,)`` or scalar in [0, 1]: 1 keeps the volume, 0 is off.
+        ratio_range: ``(low, high)`` bounds of ``A0 / A``.
+    """
+    dt = surface_points.dtype
+    a0 = jnp.asarray(area0, dt)
+    a = vertex_areas(surface_points, tri, a0.shape[0], xp=jnp)
+    ok = a0 > 0
+    lo, hi = ratio_range
+    ratio = jnp.where(ok, a0 / jnp.maximum(a, jnp.where(ok, a0, 1.0) / hi), 1.0)
+    return jnp.exp(jnp.asarray(gain, dt) * jnp.log(jnp.clip(ratio, lo, hi)))
 
 
 def _hull_project(g, x, normals, offsets):
