@@ -156,6 +156,22 @@ def test_plane_metrics_hand_computed():
     assert m3.scan_to_fit["all"].n == 4
 
 
+def test_scan_points_on_skin_outside_the_face_region_do_not_count():
+    # the face region (z = 0) and skin outside it folded 10 mm beneath (z = -10), as under the
+    # chin of an opened jaw: a scan point on that skin lies 10 mm from the face region, inside
+    # it rather than beyond its border, but it is no fitting error
+    V, F = grid_plane(n=21, size=20.0)
+    V2 = V + np.array([0.0, 0.0, -10.0])
+    VV = np.vstack([V, V2])
+    FF = np.vstack([F, F + len(V)])
+    mask = np.arange(len(VV)) < len(V)
+    scan = np.array([[1.0, 2.0, 0.5], [-3.0, 4.5, -1.0], [2.0, 1.0, -10.0], [0.0, 0.0, -9.5]])
+    m = fit_metrics((VV, FF), scan, face_mask=mask)
+    assert m.scan_to_fit["all"].n == 2
+    assert m.scan_to_fit["all"].mean == pytest.approx(0.75)
+    assert fit_metrics((VV, FF), scan).scan_to_fit["all"].n == 4     # no mask: every point
+
+
 def test_sphere_truth_to_fit_hand_computed():
     R = 50.0
     sph = trimesh.creation.icosphere(subdivisions=3, radius=R)

@@ -657,9 +657,10 @@ def fit_metrics(
         scan: the scan: a mesh (its vertices are the scan points) or ``(K, 3)`` points, mm;
             ``None`` skips the scan term.
         face_mask: ``(V,)`` bool over the fitted vertices. A scan point counts when its
-            closest point on the fitted skin lies inside the face region (triangles with
-            all three vertices in the mask) and not on that region's border (a point beyond
-            the border is outside the face, not a fitting error). Default: the whole skin.
+            closest point on the whole fitted skin lies in the face region (triangles with
+            all three vertices in the mask) and not on the skin's border (a point beyond the
+            face region or the border is outside the face, not a fitting error). Default: the
+            whole skin.
         fitted_landmarks, scan_landmarks: landmark sets (Landmarks or dicts, mm) compared by
             label.
         truth: ground-truth mesh in the same frame (e.g. a ``.truth.ply``) or its ``(K, 3)``
@@ -692,10 +693,14 @@ def fit_metrics(
             pts = np.asarray(scan.points, dtype=np.float64)
         else:
             pts = mesh_arrays(scan)[0]
-        tri_mask = _mask_triangles(ff, face_mask)
-        index = SurfaceIndex(fv, ff, tri_mask)
-        cp = index.query(pts)
-        keep = np.ones(len(pts), bool) if face_mask is None else ~cp.on_boundary
+        cp = SurfaceIndex(fv, ff).query(pts)
+        if face_mask is None:
+            keep = np.ones(len(pts), bool)
+        else:
+            # the point's closest point on the whole skin must lie in the face region: the
+            # closest point on the face region alone put skin beyond it (under an opened
+            # jaw's chin) tens of mm from the face, inside the region rather than on its border
+            keep = _mask_triangles(ff, face_mask)[cp.triangles] & ~cp.on_boundary
         if max_distance is not None:
             keep &= cp.distances <= max_distance
         regions = _region_masks(pts, plane)
