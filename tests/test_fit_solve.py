@@ -368,16 +368,16 @@ def test_gradient_correction_gives_the_exact_rigs_gradient(round_trip):
 
 
 def test_bound_flip_restart_leaves_a_minimum_with_a_saturated_control(tmp_path):
-    """A fit trapped with a control at its upper bound, and the restart that frees it.
+    """A fit trapped with controls at their upper bound, and the restart that frees it.
 
-    With a passive sheet of superficial cheek tissue (SMAS) added to the default map, the
-    round trip of ``bench_fit`` (eight controls and the jaw, all controls fitted) ended,
-    before the restart existed, 0.053 mm from its scan with levator anguli oris L at 1.0
-    (true 0) and depressor anguli oris L at 0 (true 0.4): a minimum of the fit, not a lack of
-    distinguishability (the Jacobian's condition number there was 42). The restart run must
-    win over the run it restarted, and recover the truth. The rig is built without the fat
-    layer (``fat_volume=0``), as when the case was found: with it, no control of this fit ends
-    at its bound, so nothing is restarted."""
+    The default head with a passive sheet of superficial cheek tissue (SMAS) added to the map
+    and no fat layer (``fat_volume=0``), eight true controls (zygomaticus major L at its bound,
+    1) and the jaw: the fit ends with buccinator L and levator anguli oris R at 1 (true 0),
+    at a cost of 1.3e-2 mm^2; fitted again from there with them back near 0, it reaches 4e-4.
+    (Stop 19's case, zygomaticus major L at 0.6, no longer traps anything since the right
+    side's muscle quads are split as mirror images, e876eda.) The restart run must win, by
+    far, and end near the truth: 0.0085 mm from the scan, activations within 0.14 (measured;
+    the SMAS sheet blurs some of the lip muscles into each other)."""
     import json
 
     from jaxface.anatomy.jaw import JawPose
@@ -400,7 +400,7 @@ def test_bound_flip_restart_leaves_a_minimum_with_a_saturated_control(tmp_path):
     head = generic_head()
     rig = build_rig(head, muscle_map=path, fat_volume=0.0)
     bound = SkinLandmarks.of_rig(rig)
-    truth = {"zygomaticus_major_L": 0.6, "zygomaticus_major_R": 0.45, "frontalis_medial_L": 0.5,
+    truth = {"zygomaticus_major_L": 1.0, "zygomaticus_major_R": 0.45, "frontalis_medial_L": 0.5,
              "frontalis_medial_R": 0.5, "corrugator_R": 0.3, "orbicularis_oris": 0.25,
              "depressor_anguli_oris_L": 0.4, "levator_labii_superioris_alaeque_nasi_R": 0.35}
     x = np.asarray(synthesize(rig, rig.activations(truth), JawPose(6.0, 1.0, 1.0)))
@@ -408,8 +408,9 @@ def test_bound_flip_restart_leaves_a_minimum_with_a_saturated_control(tmp_path):
                                options=SubjectOptions())
     (res,) = fit_expressions(subject, [scan_skin(x, bound)], options=FitOptions(restart_iterations=4))
     r = res.fit.restart
-    assert r and r["kept"] and r["cost_mm2"] < r["parent_cost_mm2"], r
-    assert "levator_anguli_oris_L" in r["controls"] and res.solver_dict()["restart"]["kept"]
+    assert r and r["kept"] and r["cost_mm2"] < 0.1 * r["parent_cost_mm2"], r
+    assert r["controls"] and all(truth.get(n, 0.0) == 0.0 for n in r["controls"]), r
+    assert res.solver_dict()["restart"]["kept"]
     assert res.metrics.scan_to_fit["all"].mean < 0.01
     for n in subject.muscle_names:
-        assert abs(res.activations[n] - truth.get(n, 0.0)) < 0.05, (n, res.activations[n])
+        assert abs(res.activations[n] - truth.get(n, 0.0)) < 0.2, (n, res.activations[n])
