@@ -53,10 +53,11 @@ FOOTPRINT_MM = 5.0
 #: Default gain of the fat layer's volume preservation, ``(lower, upper)``
 #: (:func:`~jaxface.anatomy.skin.fat_thickness`): half in the lower face, blended to none
 #: from the eyes up to the brows. On the Bosphorus-style scans (``benchmarks/bench_fit.py``,
-#: float64) it lowers the mean error from 0.889 to 0.854 mm (jaw opening LFAU_26 1.11 -> 0.91
-#: mm on both subjects; E_SURPRISE 0.89 -> 0.83); gains 0.35 and 0.7 gave 0.858 mm each;
-#: gain 0.5 over the whole face 0.861 mm (the brow raisers got 0.02-0.07 mm worse with the
-#: forehead thickening under the frontalis). 0 turns it off.
+#: float64, measured before the muscle quads were split as mirror images) it lowered the mean
+#: error from 0.889 to 0.854 mm (jaw opening LFAU_26 1.11 -> 0.91 mm on both subjects;
+#: E_SURPRISE 0.89 -> 0.83); gains 0.35 and 0.7 gave 0.858 mm each; gain 0.5 over the whole
+#: face 0.861 mm (the brow raisers got 0.02-0.07 mm worse with the forehead thickening under
+#: the frontalis). 0 turns it off.
 FAT_VOLUME = (0.5, 0.0)
 
 __all__ = ["FAT_VOLUME", "FOOTPRINT_MM", "JAW_FOLLOW_MM", "Rig", "RigInfo", "SynthState", "build_rig", "jaw_follow_weights", "synthesize",

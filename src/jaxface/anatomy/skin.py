@@ -299,13 +299,22 @@ def _upper_face_blend(skin: TriMesh, frame: FaceFrame) -> np.ndarray:
     return _smoothstep(np.clip((y - y0) / max(y1 - y0, 1e-9), 0.0, 1.0))
 
 
-def _lower_upper(value, name: str, unit: str, *, low: float, high: float = np.inf) -> np.ndarray:
-    """Check one value or a ``(lower, upper)`` pair in ``[low, high]``; returns ``(1,)`` or ``(2,)``."""
+def _lower_upper_field(skin: TriMesh, frame: FaceFrame, value, name: str, what: str, *,
+                       low: float, high: float = np.inf, strict: bool = False) -> np.ndarray:
+    """``(V,)`` field of one value, or of a ``(lower, upper)`` pair blended from the eyes up to
+    the brows (:func:`_upper_face_blend`).
+
+    Raises:
+        RigError: not one number or a pair of numbers in ``[low, high]`` (above ``low`` when
+            ``strict``); ``what`` says what the numbers are.
+    """
     v = np.atleast_1d(np.asarray(value, np.float64))
-    if v.shape not in ((1,), (2,)) or not np.all(np.isfinite(v)) or v.min() < low or v.max() > high:
-        raise RigError(f"{name} must be a number or a (lower, upper) pair of numbers in "
-                       f"[{low:g}, {high:g}]{unit}, got {value!r}.")
-    return v
+    below = (v.min() <= low if strict else v.min() < low) if v.size else True
+    if v.shape not in ((1,), (2,)) or not np.all(np.isfinite(v)) or below or v.max() > high:
+        raise RigError(f"{name} must be a number or a (lower, upper) pair of {what}, got {value!r}.")
+    if v.size == 1 or v[0] == v[1]:
+        return np.full(skin.n_vertices, v[0])
+    return v[0] + (v[1] - v[0]) * _upper_face_blend(skin, frame)
 
 
 def footprint_sigma(skin: TriMesh, frame: FaceFrame, footprint_mm) -> np.ndarray:
@@ -320,15 +329,8 @@ def footprint_sigma(skin: TriMesh, frame: FaceFrame, footprint_mm) -> np.ndarray
     Raises:
         RigError: not a positive number or a pair of positive numbers.
     """
-    fp = np.atleast_1d(np.asarray(footprint_mm, np.float64))
-    if fp.shape not in ((1,), (2,)) or not np.all(np.isfinite(fp)) or fp.min() <= 0:
-        raise RigError(f"footprint_mm must be a positive number or a (lower, upper) pair of "
-                       f"positive numbers (reference mm), got {footprint_mm!r}.")
-    V = skin.n_vertices
-    if fp.size == 1 or fp[0] == fp[1]:
-        return np.full(V, fp[0] * frame.mean_scale)
-    t = _upper_face_blend(skin, frame)
-    return (fp[0] + (fp[1] - fp[0]) * t) * frame.mean_scale
+    return _lower_upper_field(skin, frame, footprint_mm, "footprint_mm",
+                              "positive numbers (reference mm)", low=0.0, strict=True) * frame.mean_scale
 
 
 def eyelid_vertices(skin: TriMesh, frame: FaceFrame, side: str, threshold: float = 0.04):
@@ -480,8 +482,9 @@ def build_skin_system(skin: TriMesh, frame: FaceFrame, binding: Binding, support
             0 = off, 1 = full; one value, or a ``(lower, upper)`` pair blended like
             ``footprint_mm``.
     """
-    fv = _lower_upper(fat_volume, "fat_volume", " (0 = off, 1 = the fat layer keeps its volume)",
-                      low=0.0, high=1.0)
+    fat_gain = _lower_upper_field(skin, frame, fat_volume, "fat_volume",
+                                  "numbers in [0, 1] (0 = off, 1 = the fat layer keeps its volume)",
+                                  low=0.0, high=1.0)
     k = dict(SKIN_STIFFNESS)
     k.update(stiffness or {})
     x = skin.vertices
@@ -547,14 +550,12 @@ def build_skin_system(skin: TriMesh, frame: FaceFrame, binding: Binding, support
     mem_ids, mem_border, mem_H = membrane_interpolation(skin, mem)
     anchor_k[mem_ids] = 1.0
     acnt = np.ones(V)
-    fat_gain = (np.full(V, fv[0]) if fv.size == 1 or fv[0] == fv[1]
-                else fv[0] + (fv[1] - fv[0]) * _upper_face_blend(skin, frame)).astype(np.float64)
     if mem_ids.size:
         # the membrane has no layer under it; its border, which it is interpolated from, keeps
         # its rest thickness too (a thickened border bulged the membrane's edge into 2 folds)
         fat_gain[mem_ids] = 0.0
         fat_gain[mem_border] = 0.0
-    fat_tri = tri[tkeep] if fv.max() > 0 else np.zeros((0, 3), np.int64)
+    fat_tri = tri[tkeep] if fat_gain.max() > 0 else np.zeros((0, 3), np.int64)
     return SkinSystem(
         rest=to_jax(x), bind_ids=to_jax(support_ids), bind_w=to_jax(support_w),
         bind_offset=to_jax(x - binding.point),
