@@ -160,6 +160,7 @@ def test_fit_command_defaults_are_the_librarys():
     fo, so = FitOptions(), SubjectOptions()
     assert defaults["points"] == fo.n_points
     assert defaults["outer_iterations"] == fo.outer_iterations
+    assert defaults["extra_iterations"] == fo.extra_iterations
     assert defaults["max_steps"] == fo.max_steps
     assert defaults["exact_steps"] == fo.exact_steps
     assert defaults["restart_iterations"] == fo.restart_iterations

@@ -255,6 +255,30 @@ def test_round_trip_conditioning_report(round_trip):
         assert np.isfinite(cond["vif"][n])
 
 
+def test_outer_iterations_go_on_until_the_fit_stops_moving(round_trip):
+    """Two annealed outer iterations leave this fit far from converged: without extra
+    iterations it must say so; with them it goes on at the final annealing, stops by itself
+    once the activations and jaw stop moving, and reaches the truth."""
+    import dataclasses
+
+    from jaxface.fit.pipeline import fit_expressions
+
+    subject, _, _, opt, expr = round_trip[:5]
+    short = dataclasses.replace(opt, outer_iterations=2, extra_iterations=0)
+    (cut,) = fit_expressions(subject, [expr], options=short)
+    assert len(cut.fit.reports) == 2
+    assert cut.status == "outer_not_converged", cut.solver_dict()
+    longer = dataclasses.replace(opt, outer_iterations=2, extra_iterations=12)
+    (res,) = fit_expressions(subject, [expr], options=longer)
+    assert 2 < len(res.fit.reports) < 2 + 12, len(res.fit.reports)
+    assert res.status == "successful", res.solver_dict()
+    assert [r.outer for r in res.fit.reports] == list(range(len(res.fit.reports)))
+    assert res.fit.reports[-1].scale_mm == pytest.approx(opt.robust_floor_mm[1])
+    assert abs(res.jaw["pitch_deg"] - TRUE_PITCH) < 0.5
+    for n, v in TRUE.items():
+        assert abs(res.activations[n] - v) < 0.05, (n, res.activations[n], v)
+
+
 def test_fit_rejects_unknown_controls(round_trip):
     from jaxface.fit.solve import fit_points
 
@@ -376,8 +400,9 @@ def test_bound_flip_restart_leaves_a_minimum_with_a_saturated_control(tmp_path):
     at a cost of 1.3e-2 mm^2; fitted again from there with them back near 0, it reaches 4e-4.
     (Stop 19's case, zygomaticus major L at 0.6, no longer traps anything since the right
     side's muscle quads are split as mirror images, e876eda.) The restart run must win, by
-    far, and end near the truth: 0.0085 mm from the scan, activations within 0.14 (measured;
-    the SMAS sheet blurs some of the lip muscles into each other)."""
+    far, and end near the truth: measured 0.0023 mm from the scan and activations within
+    0.035 since fits run until they converge (FitOptions.extra_iterations; 0.0085 mm and
+    0.14 before)."""
     import json
 
     from jaxface.anatomy.jaw import JawPose
@@ -413,4 +438,4 @@ def test_bound_flip_restart_leaves_a_minimum_with_a_saturated_control(tmp_path):
     assert res.solver_dict()["restart"]["kept"]
     assert res.metrics.scan_to_fit["all"].mean < 0.01
     for n in subject.muscle_names:
-        assert abs(res.activations[n] - truth.get(n, 0.0)) < 0.2, (n, res.activations[n])
+        assert abs(res.activations[n] - truth.get(n, 0.0)) < 0.1, (n, res.activations[n])

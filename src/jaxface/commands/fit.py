@@ -155,6 +155,11 @@ def register(app: typer.Typer) -> None:
         outer_iterations: int = typer.Option(6, "--outer-iterations", min=1,
                                              help="Correspondence refreshes (one exact rig synthesis and one "
                                                   "reverse pass through the rig each)."),
+        extra_iterations: int = typer.Option(
+            6, "--extra-iterations", min=0,
+            help="At most this many more outer iterations for a scan whose activations or jaw still "
+                 "move (each scan stops on its own; one still moving after them is reported as "
+                 "outer_not_converged)."),
         max_steps: int = typer.Option(40, "--max-steps", min=1, help="Levenberg-Marquardt steps per inner solve."),
         exact_steps: int = typer.Option(0, "--exact-steps", min=0,
                                         help="Final LM steps through the exact rig (slow: a rig Jacobian each)."),
@@ -192,7 +197,8 @@ def register(app: typer.Typer) -> None:
         from ..fit.pipeline import SubjectOptions
         from ..fit.solve import FitOptions
 
-        opts = FitOptions(n_points=points, outer_iterations=outer_iterations, max_steps=max_steps,
+        opts = FitOptions(n_points=points, outer_iterations=outer_iterations,
+                          extra_iterations=extra_iterations, max_steps=max_steps,
                           exact_steps=exact_steps, restart_iterations=restart_iterations)
         sopts = SubjectOptions(backend=backend, levels=levels, pitch_knots=pitch_knots)
         t0 = time.perf_counter()
