@@ -195,10 +195,11 @@ class FitOptions:
             iterations at the final annealing (then, while still converging, for up to
             ``extra_iterations`` more); the lower final cost wins
             (:attr:`PointFit.restart`). It lets a fit leave a minimum where a control
-            saturated early and the active set held it: with a passive SMAS sheet added to
-            the default map, the default head's round trip ends 0.053 mm from its scan with
-            one control at 1 instead of 0, and with 4 restart iterations within 0.003 mm and
-            0.03 of every activation. Off by default: on the Bosphorus-style scans (model
+            saturated early and the active set held it: started with every activation at
+            0.9, a synthetic round trip on the default head ends with depressor labii
+            inferioris L at 1 instead of 0 (cost 3.3e-3 mm^2), and with 4 restart iterations
+            at 4.4e-5 mm^2, 0.0032 mm from its scan and within 0.036 of every activation
+            (the test's case). Off by default: on the Bosphorus-style scans (model
             mismatch) the restarts found lower scan costs but not lower truth errors (mean
             0.897 against 0.890 mm with 2; LFAU_20 1.066 against 1.003 on bs900). Cost with
             2, a warm batch of the 11 scans of bs900 in float64: 78.3 s against 58.4 s.
