@@ -255,10 +255,10 @@ def test_round_trip_conditioning_report(round_trip):
         assert np.isfinite(cond["vif"][n])
 
 
-def test_outer_iterations_go_on_until_the_fit_stops_moving(round_trip):
+def test_outer_iterations_go_on_until_the_fit_has_converged(round_trip):
     """Two annealed outer iterations leave this fit far from converged: without extra
     iterations it must say so; with them it goes on at the final annealing, stops by itself
-    once the activations and jaw stop moving, and reaches the truth."""
+    once its cost stops falling or its parameters stop moving, and reaches the truth."""
     import dataclasses
 
     from jaxface.fit.pipeline import fit_expressions

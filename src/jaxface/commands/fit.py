@@ -157,8 +157,9 @@ def register(app: typer.Typer) -> None:
                                                   "reverse pass through the rig each)."),
         extra_iterations: int = typer.Option(
             6, "--extra-iterations", min=0,
-            help="At most this many more outer iterations for a scan whose activations or jaw still "
-                 "move (each scan stops on its own; one still moving after them is reported as "
+            help="At most this many more outer iterations for a scan still converging: its cost still "
+                 "falls by more than 1 % per iteration while its activations or jaw still move (each "
+                 "scan stops on its own; one still converging after them is reported as "
                  "outer_not_converged)."),
         max_steps: int = typer.Option(40, "--max-steps", min=1, help="Levenberg-Marquardt steps per inner solve."),
         exact_steps: int = typer.Option(0, "--exact-steps", min=0,
