@@ -394,8 +394,10 @@ def test_gradient_correction_gives_the_exact_rigs_gradient(round_trip):
 def test_bound_flip_restart_leaves_a_minimum_with_a_saturated_control():
     """A fit trapped with a control at its upper bound, and the restart that frees it.
 
-    The default head, eight true controls (zygomaticus major L at its bound, 1) and the jaw,
-    fitted from a start far from the truth, every activation at 0.9: the fit ends with
+    The default head with the fat layer at half strength everywhere (``fat_volume=0.5``; the
+    default, ``(0.5, 0)``, does not trap here), eight true controls (zygomaticus major L at its
+    bound, 1) and the jaw, fitted from a start far from the truth, every activation at 0.9:
+    the fit ends with
     depressor labii inferioris L at 1 (true 0), at a cost of 3.3e-3 mm^2; fitted again from
     there with the controls at 1 back near 0, it reaches 4.4e-5. The restart run must win, by
     far, and end near the truth: measured 0.0032 mm from the scan, activations within 0.036.
@@ -408,7 +410,7 @@ def test_bound_flip_restart_leaves_a_minimum_with_a_saturated_control():
     from jaxface.io.scanner import SkinLandmarks, scan_skin
 
     head = generic_head()
-    rig = build_rig(head)
+    rig = build_rig(head, fat_volume=0.5)
     bound = SkinLandmarks.of_rig(rig)
     truth = {"zygomaticus_major_L": 1.0, "zygomaticus_major_R": 0.45, "frontalis_medial_L": 0.5,
              "frontalis_medial_R": 0.5, "corrugator_R": 0.3, "orbicularis_oris": 0.25,

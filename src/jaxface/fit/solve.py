@@ -196,7 +196,8 @@ class FitOptions:
             ``extra_iterations`` more); the lower final cost wins
             (:attr:`PointFit.restart`). It lets a fit leave a minimum where a control
             saturated early and the active set held it: started with every activation at
-            0.9, a synthetic round trip on the default head ends with depressor labii
+            0.9, a synthetic round trip on the default head (fat layer at 0.5 everywhere)
+            ends with depressor labii
             inferioris L at 1 instead of 0 (cost 3.3e-3 mm^2), and with 4 restart iterations
             at 4.4e-5 mm^2, 0.0032 mm from its scan and within 0.036 of every activation
             (the test's case). Off by default: on the Bosphorus-style scans (model
