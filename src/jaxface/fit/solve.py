@@ -1380,8 +1380,9 @@ def fit_points(
         return a, np.asarray(ys[i]["jaw"], np.float64)
 
     def step_and_track(k, act):
-        """outer_step, and whether each run's parameters still moved by more than the
-        convergence tolerances (FitOptions.extra_iterations)."""
+        """outer_step, and whether each run is still converging: its inner cost fell by more
+        than ``converge_cost`` and its parameters moved by more than their tolerances
+        (FitOptions.extra_iterations)."""
         before = [params_of(i) for i in act]
         cost = outer_step(k, act)
         move = []
