@@ -21,7 +21,9 @@ Measures (units mm, degrees, seconds):
   AU accounts for (:func:`jaxface.fit.au_motion.au_motion`, mm);
 * the neutral scans: registration error (B0 of ``N_N``) against the truth;
 * time per expression scan: one scan alone (cold: includes compiling the solver; warm: a
-  second scan with the compiled solver) and the batch (wall time / number of scans);
+  second scan with the compiled solver), the batch (wall time / number of scans), and every
+  scan of the batch fitted alone after it (``singles``; ``singles_over_batch`` is the batch
+  mode's speed-up, measured side by side in one run);
 * round trip: activations and a jaw pose synthesised on the default head (and, with
   ``--round-trip-ict``, on the ICT face) with the rig, scanned by the virtual scanner
   (:func:`jaxface.io.scanner.scan_skin`, 1 mm grid), fitted back with every control free:
@@ -113,6 +115,15 @@ def bench_subject(truth, subject_id: str, opt, *, single: bool) -> dict:
     wall = time.perf_counter() - t
     timing["batch"] = {"n_scans": len(stems), "wall_s": wall, "cpu_s": time.process_time() - c,
                        "per_scan_s": wall / len(stems)}
+    if single:
+        # the same scans one at a time (warm), right after the batch: batch mode's gain per scan
+        t = time.perf_counter()
+        c = time.process_time()
+        for s in stems:
+            fit_expressions(S, [truth.scan(s)], options=opt)
+        w1 = time.perf_counter() - t
+        timing["singles"] = {"n_scans": len(stems), "wall_s": w1, "cpu_s": time.process_time() - c,
+                             "per_scan_s": w1 / len(stems), "singles_over_batch": w1 / wall}
     out["timing"] = timing
     for stem, r in zip(stems, res):
         rec = truth.records[stem]

@@ -311,8 +311,9 @@ def test_batch_fit_matches_single_fits_in_input_order(round_trip):
 
 
 def test_batched_inner_solve_lax_map_equals_vmap(round_trip):
-    """The CPU batch mode (``lax.map``: each solve stops at its own convergence) gives the
-    same solutions as ``vmap`` (every member runs the batch's largest step count)."""
+    """The CPU batch mode (one compiled single-scan solve per member: each stops at its own
+    convergence) gives the same solutions as ``vmap`` (every member runs the batch's largest
+    step count)."""
     import jax
 
     from jaxface.fit.solve import _stack, batch_mode, make_priors, solve_inner
@@ -335,6 +336,39 @@ def test_batched_inner_solve_lax_map_equals_vmap(round_trip):
     np.testing.assert_allclose(out_map[3], out_vmap[3], rtol=1e-4, atol=1e-8)   # costs
     with pytest.raises(Exception, match="map"):
         solve_inner(Y0, P, pri, opt, mode="pmap")
+
+
+def test_map_mode_traces_the_inner_solve_once_for_every_batch_size(round_trip, monkeypatch):
+    """The subsets of a batch that go on converging have new sizes; in ``map`` mode they must
+    reuse the one compiled solve (a new trace per size cost ~10 s of compilation per size)."""
+    import dataclasses
+
+    import jax
+
+    from jaxface.fit import solve as S
+
+    subject, res, _, opt = round_trip[:4]
+    pri = S.make_priors(subject.muscle_names, opt)
+    traces = []
+    real = S._solve_one
+
+    def counted(*a, **k):
+        traces.append(1)  # runs only while JAX traces
+        return real(*a, **k)
+
+    monkeypatch.setattr(S, "_solve_one", counted)
+    opt2 = dataclasses.replace(opt, rtol=opt.rtol * 1.000001)  # a fresh cache entry
+    y = res.fit.y
+    outs = {}
+    for n in (1, 3, 2):
+        ys = [dict(y, jaw=y["jaw"] + 0.5 * b) for b in range(n)]
+        outs[n] = S.solve_inner(S._stack(ys), S._stack([res.fit.points] * n), pri, opt2, mode="map")
+    assert len(traces) == 1
+    # a member's solution does not depend on the batch it is in
+    for n in (2, 3):
+        for a, b in zip(jax.tree_util.tree_leaves(outs[n][0]), jax.tree_util.tree_leaves(outs[1][0])):
+            np.testing.assert_array_equal(np.asarray(a)[0], np.asarray(b)[0])
+    np.testing.assert_array_equal(outs[3][2][:2], outs[2][2])
 
 
 def test_gradient_correction_gives_the_exact_rigs_gradient(round_trip):
@@ -428,3 +462,26 @@ def test_bound_flip_restart_leaves_a_minimum_with_a_saturated_control():
     assert res.metrics.scan_to_fit["all"].mean < 0.01
     for n in subject.muscle_names:
         assert abs(res.activations[n] - truth.get(n, 0.0)) < 0.1, (n, res.activations[n])
+
+
+def test_forward_many_equals_single_syntheses_for_any_batch_size(round_trip):
+    """``ForwardModel.many`` gives each row's own synthesis, for batches smaller than, equal
+    to and larger than its chunk, and synthesises each row once (no padding)."""
+    from jaxface.fit.solve import ForwardModel
+
+    subject = round_trip[0]
+    fwd = ForwardModel(subject.forward.rig, chunk=2)
+    M = fwd.n_controls
+    rng = np.random.default_rng(3)
+    A = rng.uniform(0.0, 0.6, (3, M))
+    J = np.array([[2.0, 0.0, 0.0], [0.0, 1.0, 0.5], [6.0, -1.0, 1.0]])
+    ref = np.stack([fwd(a, j) for a, j in zip(A, J)])
+    fwd.calls = 0
+    for n in (1, 2, 3):
+        X = fwd.many(A[:n], J[:n])
+        assert X.shape == (n, len(fwd.rest), 3)
+        np.testing.assert_array_equal(X, ref[:n])
+    assert fwd.calls == 1 + 2 + 3
+    assert np.abs(ref[2] - ref[0]).max() > 1.0  # the rows differ: not one pose repeated
+    with pytest.raises(FitError, match="jaw pose"):
+        fwd.many(A, J[:2])

@@ -63,7 +63,7 @@ class SubjectOptions:
         register: :class:`jaxface.fit.register.RegisterOptions` (None = defaults).
         rig_kwargs: extra keyword arguments of :func:`jaxface.anatomy.rig.build_rig`
             (e.g. ``muscle_iterations``); PBD backend only.
-        chunk: batch size of the compiled rig evaluations.
+        chunk: rig syntheses dispatched at a time (between progress updates).
         controls: sample only these controls in the reduced model (default all; the fit
             must then hold the others at 0 with ``FitOptions.controls``).
     """
