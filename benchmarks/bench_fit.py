@@ -10,7 +10,7 @@ Run from the repository root (needs the shared data: ``JAXFACE_SHARED`` or ``../
 Measures (units mm, degrees, seconds):
 
 * per subject: the subject build (template registration, rig, compilation, reduced model);
-* per scan (all codes, both subjects; fitted as one batch per subject, ``jax.lax.map`` on the CPU): the
+* per scan (all codes, both subjects; fitted as one batch per subject): the
   issue-7 error of the fitted skin against ``<stem>.truth.ply`` over the evaluation region
   (:func:`jaxface.fit.evaluation.evaluate_against_truth`), the same for B0 and B1, and for B2
   (Erdoğdu 2010, :func:`jaxface.fit.baselines.baseline_b2`: the scan's AU transferred from the
@@ -30,7 +30,9 @@ Measures (units mm, degrees, seconds):
   scan match, jaw and activation errors, and the Jacobian's singular values per parameter
   group, sensitivity and variance inflation factor per parameter.
 
-Prints tables and writes ``benchmarks/results/bench_fit.json``.
+Prints tables and writes ``benchmarks/results/bench_fit.json`` and
+``benchmarks/results/bench_fit_errors.png`` (each scan's signed error against its truth mesh,
+front view).
 """
 
 from __future__ import annotations
@@ -87,6 +89,59 @@ def _b2(truth, subject, r, stem: str, subject_id: str):
     return None
 
 
+def _signed_error_map(truth, stem: str, fitted, mean: float) -> dict:
+    """Truth vertices of the evaluation region of ``stem`` (ICT frame, mm) and the signed
+    distance to the fitted skin along the truth normal (mm; + = the fit lies in front)."""
+    from jaxface.fit.evaluation import evaluation_region
+    from jaxface.fit.metrics import SurfaceIndex
+    from jaxface.render import vertex_normals
+
+    m = evaluation_region(truth, stem)
+    tm = truth.truth_mesh(stem)
+    tv = np.asarray(tm.vertices)
+    n = vertex_normals(tv, np.asarray(tm.triangles))[m]
+    q = SurfaceIndex.from_mesh(fitted).query(tv[m])
+    signed = np.sign(np.einsum("kd,kd->k", q.points - tv[m], n)) * q.distances
+    xy = truth.ict_frame_vertices(stem)[m][:, :2]
+    return {"xy": xy, "signed": signed, "mean": mean}
+
+
+def error_figure(subjects: list[tuple[str, dict]], path: Path) -> Path:
+    """One panel per scan (rows: subjects; columns: codes): the truth vertices of the
+    evaluation region seen from the front, coloured by the signed error of the fit (mm)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    codes = [c for c in CODE_AUS if any(c in maps for _, maps in subjects)]
+    fig, axs = plt.subplots(len(subjects), len(codes), figsize=(1.9 * len(codes) + 1.2, 2.4 * len(subjects) + 0.5),
+                            squeeze=False, layout="constrained")
+    xy = np.concatenate([e["xy"] for _, maps in subjects for e in maps.values()])
+    lo, hi = xy.min(axis=0) - 3.0, xy.max(axis=0) + 3.0  # one scale for every panel
+    sc = None
+    for row, (sid, maps) in zip(axs, subjects):
+        for ax, code in zip(row, codes):
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if code not in maps:
+                ax.set_visible(False)
+                continue
+            e = maps[code]
+            sc = ax.scatter(e["xy"][:, 0], e["xy"][:, 1], c=e["signed"], cmap="coolwarm", vmin=-3, vmax=3,
+                            s=1.0, linewidths=0, rasterized=True)
+            ax.set_xlim(lo[0], hi[0])
+            ax.set_ylim(lo[1], hi[1])
+            ax.set_aspect("equal")
+            ax.set_title(f"{sid} {code}\nmean {e['mean']:.2f} mm", fontsize=8)
+    if sc is not None:
+        fig.colorbar(sc, ax=axs, shrink=0.8, label="signed error, mm (+ = fit in front)")
+    fig.suptitle("Fit error against the truth meshes over each scan's evaluation region (front view)", fontsize=10)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
 def bench_subject(truth, subject_id: str, opt, *, single: bool) -> dict:
     from jaxface.fit.evaluation import evaluate_against_truth
     from jaxface.fit.pipeline import fit_expressions, prepare_subject
@@ -125,9 +180,11 @@ def bench_subject(truth, subject_id: str, opt, *, single: bool) -> dict:
         timing["singles"] = {"n_scans": len(stems), "wall_s": w1, "cpu_s": time.process_time() - c,
                              "per_scan_s": w1 / len(stems), "singles_over_batch": w1 / wall}
     out["timing"] = timing
+    maps = {}
     for stem, r in zip(stems, res):
         rec = truth.records[stem]
         ev = evaluate_against_truth(r.fitted, truth, stem)
+        maps[rec.code] = _signed_error_map(truth, stem, r.fitted, ev.mean)
         b0 = evaluate_against_truth(r.baseline_meshes["B0"], truth, stem)
         b1 = evaluate_against_truth(r.baseline_meshes["B1"], truth, stem)
         exp = CODE_AUS.get(rec.code, [])
@@ -151,6 +208,7 @@ def bench_subject(truth, subject_id: str, opt, *, single: bool) -> dict:
             "activations": r.activations,
         }
         out["scans"].append(row)
+    out["error_maps"] = maps  # drawn by main(), not written to the JSON
     return out
 
 
@@ -247,9 +305,11 @@ def main() -> None:
     opt = FitOptions(**kw)
     report = {"machine": _machine(), "options": {k: (list(v) if isinstance(v, tuple) else v)
                                                  for k, v in opt.__dict__.items()}, "subjects": []}
+    error_maps = []
     for sid in [s for s in args.subjects.split(",") if s]:
         print(f"== subject {sid}", flush=True)
         r = bench_subject(truth, sid, opt, single=not args.no_single)
+        error_maps.append((sid, r.pop("error_maps")))
         report["subjects"].append(r)
         print(f"build {r['build']['wall_s']:.1f} s (register {r['build']['register_s']:.1f}, rig "
               f"{r['build']['rig_s']:.1f}, compile {r['build']['compile_s']:.1f}, reduced model "
@@ -311,6 +371,8 @@ def main() -> None:
 
     (out / "bench_fit.json").write_text(json.dumps(_jsonable(report), indent=1))
     print(f"wrote {out / 'bench_fit.json'}")
+    if error_maps:
+        print(f"wrote {error_figure(error_maps, out / 'bench_fit_errors.png')}")
 
 
 if __name__ == "__main__":

@@ -172,7 +172,7 @@ def register(app: typer.Typer) -> None:
         levels: int = typer.Option(4, "--levels", min=1, help="Activation knots of the rig's reduced model."),
         pitch_knots: int = typer.Option(12, "--pitch-knots", min=3, help="Jaw pitch knots of the reduced model."),
         batch_size: Optional[int] = typer.Option(  # noqa: UP007
-            None, "--batch-size", min=1, help="Scans solved together in one compiled call (lax.map on the CPU, vmap on a GPU); default all."),
+            None, "--batch-size", min=1, help="Scans fitted together (one after the other on the CPU, one vmap on a GPU); default all."),
         quiet: bool = typer.Option(False, "--quiet", "-q", help="Only print errors."),
     ):
         """Fit muscle activations, jaw pose and a rigid correction to expression scans of one

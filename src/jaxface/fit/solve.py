@@ -71,11 +71,12 @@ Jaw start: by default at the pitch whose reduced-model landmarks best match the 
 landmarks; ``FitOptions.jaw_starts`` gives an explicit multi-start instead (all starts in
 one batch, the best final cost wins). Optionally (``FitOptions.exact_steps``) a final
 Levenberg-Marquardt solve runs through the exact rig's own forward-mode Jacobian. Batches of
-scans (and starts) are solved in one compiled call (padded, zero-weight residuals): on the CPU
-with ``jax.lax.map``, one solve after the other, each stopping at its own convergence; on an
-accelerator with ``jax.vmap``, all in parallel. (A ``vmap`` of a while loop runs every member
+scans (and starts) share their residual layout (padded, zero-weight residuals). On the CPU
+one compiled single-scan solve is called per scan, dispatched without waiting, each
+stopping at its own convergence, so no batch size compiles anything new; on an accelerator
+one ``jax.vmap`` solves them all in parallel. (A ``vmap`` of a while loop runs every member
 for the largest number of steps in the batch; on the 2-core CPU a batch of 11 Bosphorus scans
-took 5.5 s per scan with ``vmap`` and 3.3 s with ``lax.map``, same fits.)
+took 5.5 s per scan with ``vmap`` and 3.3 s one after the other, same fits.)
 
 Outer iterations: ``FitOptions.outer_iterations`` anneal the correspondence rejection; a scan
 whose cost still falls while its activations or jaw still move goes on at the final annealing
