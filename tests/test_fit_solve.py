@@ -310,7 +310,7 @@ def test_batch_fit_matches_single_fits_in_input_order(round_trip):
     assert rest_fit.metrics.scan_to_fit["all"].mean < 0.1
 
 
-def test_batched_inner_solve_lax_map_equals_vmap(round_trip):
+def test_batched_inner_solve_map_equals_vmap(round_trip):
     """The CPU batch mode (one compiled single-scan solve per member: each stops at its own
     convergence) gives the same solutions as ``vmap`` (every member runs the batch's largest
     step count)."""
