@@ -8,6 +8,9 @@
 import os
 
 os.environ.setdefault("MPLBACKEND", "Agg")
+# the CLI's persistent compilation cache stays off in tests run in-process (no writes to the
+# home folder); tests/test_cli.py turns it on in a temporary folder in a subprocess
+os.environ.setdefault("JAXFACE_COMPILE_CACHE", "off")
 
 import jax  # noqa: E402
 import pytest  # noqa: E402

@@ -1,6 +1,7 @@
 """The ``jaxface`` command line, run as a user would (subprocess), plus the error mapping."""
 
 import os
+import shutil
 import subprocess
 import sys
 
@@ -167,3 +168,41 @@ def test_fit_command_defaults_are_the_librarys():
     assert defaults["levels"] == so.levels
     assert defaults["pitch_knots"] == so.pitch_knots
     assert defaults["backend"] == so.backend
+
+
+def test_compile_cache_is_written_where_asked_and_not_when_off(tmp_path):
+    """The CLI keeps XLA's compiled programs in ``--compile-cache`` / ``JAXFACE_COMPILE_CACHE``
+    (default under ``$XDG_CACHE_HOME``), and writes nothing with ``off``."""
+    env = dict(os.environ, MPLBACKEND="Agg", JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
+               XDG_CACHE_HOME=str(tmp_path / "xdg"))
+    cache = tmp_path / "cache"
+    args = [sys.executable, "-m", "jaxface.cli", "synth", "--au", "AU12=0.5", "-q"]
+    on = subprocess.run(args + ["--out", str(tmp_path / "a")], capture_output=True, text=True,
+                        env=dict(env, JAXFACE_COMPILE_CACHE=str(cache)), timeout=600)
+    assert on.returncode == 0, on.stderr[-2000:]
+    assert any(p.name.endswith("-cache") for p in cache.iterdir())
+    assert not (tmp_path / "xdg" / "jaxface").exists()  # (matplotlib may cache there)
+    noenv = {k: v for k, v in env.items() if k != "JAXFACE_COMPILE_CACHE"}
+    default = subprocess.run(args + ["--out", str(tmp_path / "c")], capture_output=True, text=True,
+                             env=noenv, timeout=600)
+    assert default.returncode == 0, default.stderr[-2000:]
+    assert any(p.name.endswith("-cache") for p in (tmp_path / "xdg" / "jaxface" / "xla").iterdir())
+    shutil.rmtree(tmp_path / "xdg" / "jaxface")
+    off = subprocess.run([args[0], "-m", "jaxface.cli", "--compile-cache", "off", *args[3:], "--out",
+                          str(tmp_path / "b")], capture_output=True, text=True,
+                         env=noenv, timeout=600)
+    assert off.returncode == 0, off.stderr[-2000:]
+    assert (tmp_path / "b").is_dir() and not (tmp_path / "xdg" / "jaxface").exists()
+
+
+def test_compile_cache_default_folder_and_unwritable_folder(tmp_path, monkeypatch):
+    from jaxface.compile_cache import default_cache_dir, enable_compile_cache
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    assert default_cache_dir() == tmp_path / "jaxface" / "xla"
+    for off in ("off", "OFF", "0", "none", ""):
+        assert enable_compile_cache(off) is None
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    with pytest.warns(UserWarning, match="compilation cache stays off"):
+        assert enable_compile_cache(blocker / "xla") is None

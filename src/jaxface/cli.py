@@ -178,10 +178,18 @@ def _root(
         None, "--version", "-V", callback=_version_callback, is_eager=True,
         help="Print the version and exit."),
     debug: bool = typer.Option(False, "--debug", help="Show full tracebacks on errors."),
+    compile_cache: Optional[str] = typer.Option(  # noqa: UP007
+        None, "--compile-cache", envvar="JAXFACE_COMPILE_CACHE", metavar="DIR|off",
+        help="Folder of the persistent XLA compilation cache (default ~/.cache/jaxface/xla): a later "
+             "run on the same subject loads what this one compiled (a one-scan fit: 54 s -> 32 s). "
+             "'off' turns it off."),
 ):
     """jaxface command line."""
     global _DEBUG
     _DEBUG = debug
+    from .compile_cache import enable_compile_cache
+
+    enable_compile_cache(compile_cache)
 
 
 # ----------------------------------------------------------------------------- demo
