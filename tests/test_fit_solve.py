@@ -279,6 +279,28 @@ def test_outer_iterations_go_on_until_the_fit_has_converged(round_trip):
         assert abs(res.activations[n] - v) < 0.05, (n, res.activations[n], v)
 
 
+def test_a_fit_whose_active_set_still_changes_goes_on(round_trip):
+    """One outer iteration with one active-set round cannot settle this fit's bounds: it must
+    not say ``successful``. With extra iterations the fit goes on until an iteration leaves
+    the set of activations held at a bound as it was, and only then reports success."""
+    import dataclasses
+
+    from jaxface.fit.pipeline import fit_expressions
+
+    subject, _, _, opt, expr = round_trip[:5]
+    short = dataclasses.replace(opt, outer_iterations=1, active_set_rounds=1, extra_iterations=0)
+    (cut,) = fit_expressions(subject, [expr], options=short)
+    assert cut.fit.reports[-1].active_set_changes > 0
+    assert cut.status != "successful", cut.solver_dict()
+    longer = dataclasses.replace(opt, outer_iterations=1, active_set_rounds=1, extra_iterations=12)
+    (res,) = fit_expressions(subject, [expr], options=longer)
+    assert len(res.fit.reports) > 1
+    assert res.fit.reports[-1].active_set_changes == 0
+    assert res.status == "successful", res.solver_dict()
+    for n, v in TRUE.items():
+        assert abs(res.activations[n] - v) < 0.05, (n, res.activations[n], v)
+
+
 def test_fit_rejects_unknown_controls(round_trip):
     from jaxface.fit.solve import fit_points
 

@@ -216,7 +216,9 @@ class FitOptions:
             and moving an activation by 0.04. (Both tests are needed: on the Bosphorus-style
             scans activations wander by 0.05-0.3 per iteration along directions the cost
             hardly sees, the cost falling by well under 1 %, and following them lowered no
-            truth error.)
+            truth error.) A scan whose active set of bounds was still changing after the
+            ``active_set_rounds`` of its last iteration also goes on; one still changing at the
+            end is reported as ``"active_set_changing"``.
         converge_activation: see ``extra_iterations`` (unit activation).
         converge_jaw: see ``extra_iterations`` (degrees and mm).
         converge_cost: see ``extra_iterations`` (relative decrease of the inner cost).
@@ -1405,7 +1407,8 @@ def fit_points(
 
     def step_and_track(k, act):
         """outer_step, and whether each run is still converging: its inner cost fell by more
-        than ``converge_cost`` and its parameters moved by more than their tolerances
+        than ``converge_cost`` and its parameters moved by more than their tolerances, or its
+        active set of bounds still changed in the iteration's last round
         (FitOptions.extra_iterations)."""
         before = [params_of(i) for i in act]
         cost = outer_step(k, act)
@@ -1415,7 +1418,8 @@ def fit_points(
             rp = reports[i][-1]
             gain = (rp.cost0 - rp.cost) / max(rp.cost0, 1e-300)
             move.append(bool((np.max(np.abs(a1 - a0), initial=0.0) > opt.converge_activation
-                              or np.max(np.abs(j1 - j0)) > opt.converge_jaw) and gain > opt.converge_cost))
+                              or np.max(np.abs(j1 - j0)) > opt.converge_jaw) and gain > opt.converge_cost)
+                        or last_changes[i] > 0)
         return cost, np.asarray(move, bool)
 
     for k in range(outer):
