@@ -561,9 +561,12 @@ def _place_sphincter(P: _Placer, spec: MuscleSpec, support: list[int], tscale: f
     db = fr.axes[1] - ncp * (fr.axes[1] @ ncp)
     db -= da * (db @ da)
     db /= np.linalg.norm(db)
-    allp = proj(bottom)
-    a_len = np.max((allp - o) @ da)
-    b_len = np.max((allp - o) @ db)
+    # semi-axes: the ellipse about the contraction centre the solver uses (the inner ring's mean,
+    # eq. 4.12) that reaches the farthest sample on either side, so a ring and its mirror image
+    # (the two eyes) get the same ellipse
+    rel = proj(bottom) - o_guess
+    a_len = np.max(np.abs(rel @ da))
+    b_len = np.max(np.abs(rel @ db))
     thickness = spec.thickness * fr.mean_scale * tscale
     pm = PlacedMuscle(spec=spec, origin=fibres[2].positions, insertion=fibres[0].positions,
                       origin_skin=rings_skin[2], insertion_skin=rings_skin[0],

@@ -93,7 +93,11 @@ POSITION_STIFFNESS = 0.2  # the same for every kind
 #: corner followed about a quarter of a zygomaticus pull. The gain is 1: the node moves with the
 #: muscles inserted into it (0.6 before; 1 fits the ten lower-face Bosphorus-style scans 0.095 mm
 #: better on average, every one of them better; 1.5 would fit better still, but a node moving
-#: further than the muscles pulling it has no anatomical reading).
+#: further than the muscles pulling it has no anatomical reading). A sample follows its nearer
+#: modiolus, and the samples near the mid-line a blend of both (weights ``g_s^2 / (g_L + g_R)``
+#: for the Gaussians ``g``), so a symmetric pull moves the lips symmetrically: giving each
+#: sample only its nearer side's pull had moved the lip mid-line 0.46 mm sideways under
+#: zygomaticus major at 1 on both sides.
 MODIOLUS_GAIN = 1.0
 MODIOLUS_SIGMA_MM = 9.0
 MODIOLUS_MAX_OFFSET_MM = 10.0  # corner muscles: insertion within this of the mouth corner
@@ -172,8 +176,8 @@ class MuscleSystem(eqx.Module):
         sph_ids, sph_w: ``(K, 3, n, 3)`` the three rings of every sphincter (inner, middle,
             outer); sph_bottom: ``(K, 3, n)``; sph_ctrl: ``(K,)``; sph_cmax: ``(K,)``;
             sph_axes: ``(K, 2, 3)``; sph_ab: ``(K, 2)`` semi-axes, mm.
-        mod_w, mod_side: ``(K, 3, n)`` modiolus weight in [0, 1] and side (0 left, 1 right)
-            of every sphincter ring sample; mod_end, mod_last, mod_fw: ``(2, J)`` per side the
+        mod_w: ``(K, 3, n, 2)`` modiolus weights in [0, 1] of every sphincter ring sample,
+            toward the left (0) and the right (1) modiolus; mod_end, mod_last, mod_fw: ``(2, J)`` per side the
             corner-muscle fibres' insertion-end sample (flat index into the ``(F * H)``
             samples), their action-line end (fibre index) and weight (1 / fibres of the
             muscle; 0 pads): see :data:`MODIOLUS_GAIN`.
@@ -215,7 +219,6 @@ class MuscleSystem(eqx.Module):
     sph_axes: jax.Array
     sph_ab: jax.Array
     mod_w: jax.Array
-    mod_side: jax.Array
     mod_end: jax.Array
     mod_last: jax.Array
     mod_fw: jax.Array
@@ -624,8 +627,9 @@ def _is_corner_muscle(p) -> bool:
 
 def _modiolus(mod_fib, fib, sph, rest, h_max: int) -> dict:
     """Build-time modiolus data (:data:`MODIOLUS_GAIN`): per side the corner muscles' fibres
-    (insertion-end sample index, weight), per sphincter ring sample a Gaussian weight of its
-    rest distance to the side's modiolus (mean rest position of those fibres' end particles)."""
+    (insertion-end sample index, weight), per sphincter ring sample and side a Gaussian weight
+    of its rest distance to that side's modiolus (mean rest position of those fibres' end
+    particles)."""
     J = max(1, len(mod_fib[0]), len(mod_fib[1]))
     end = np.zeros((2, J), np.int64)
     last = np.zeros((2, J), np.int64)
@@ -641,16 +645,17 @@ def _modiolus(mod_fib, fib, sph, rest, h_max: int) -> dict:
             centre[s_] = rest[[pid for _, _, pid in mod_fib[s_]]].mean(axis=0)
             ok[s_] = True
     n = sph[0]["ids"].shape[1] if sph else 2
-    mod_w = np.zeros((len(sph), 3, n))
-    mod_side = np.zeros((len(sph), 3, n), np.int64)
-    if ok.any():
-        for k, s in enumerate(sph):
-            pos = rest[s["bottom"]]                                                   # (3, n, 3)
-            d = np.stack([np.linalg.norm(pos - centre[i], axis=-1) if ok[i] else np.full(pos.shape[:2], np.inf)
-                          for i in (0, 1)])                                           # (2, 3, n)
-            mod_side[k] = np.argmin(d, axis=0)
-            mod_w[k] = np.exp(-0.5 * (np.min(d, axis=0) / MODIOLUS_SIGMA_MM) ** 2)
-    return dict(mod_w=mod_w, mod_side=mod_side, mod_end=end, mod_last=last, mod_fw=fw)
+    mod_w = np.zeros((len(sph), 3, n, 2))
+    for k, s in enumerate(sph):
+        pos = rest[s["bottom"]]                                                       # (3, n, 3)
+        g = np.zeros((3, n, 2))
+        for i in (0, 1):
+            if ok[i]:
+                d = np.linalg.norm(pos - centre[i], axis=-1)                          # (3, n)
+                g[..., i] = np.exp(-0.5 * (d / MODIOLUS_SIGMA_MM) ** 2)
+        # each sample follows its nearer modiolus, the two blended across the mid-line
+        mod_w[k] = g * (g / np.maximum(g.sum(axis=-1, keepdims=True), 1e-300))
+    return dict(mod_w=mod_w, mod_end=end, mod_last=last, mod_fw=fw)
 
 
 def moved_skull_points(system: MuscleSystem, R, t):
@@ -680,7 +685,7 @@ def sample_targets(system: MuscleSystem, G, activations):
     # modiolus: contraction displacement of the corner muscles' insertion ends, per side
     pull = s.reshape(-1, 3)[system.mod_end] - pts[system.mod_last, -1]   # (2, J, 3)
     D = jnp.einsum("sj,sjd->sd", system.mod_fw.astype(dt), pull)         # (2, 3)
-    P = P + (MODIOLUS_GAIN * system.mod_w.astype(dt))[..., None] * D[system.mod_side]
+    P = P + MODIOLUS_GAIN * jnp.einsum("kmns,sd->kmnd", system.mod_w.astype(dt), D)
     inner, outer = P[:, 0], P[:, 2]
     o = jnp.mean(inner, axis=1, keepdims=True)                        # (K, 1, 3)
     ax = system.sph_axes.astype(dt)
