@@ -451,14 +451,13 @@ def test_bound_flip_restart_leaves_a_minimum_with_a_saturated_control():
     """A fit trapped with a control at its upper bound, and the restart that frees it.
 
     The default head with the fat layer at half strength everywhere (``fat_volume=0.5``; the
-    default, ``(0.5, 0)``, does not trap here), eight true controls (zygomaticus major L at its
-    bound, 1) and the jaw, fitted from a start far from the truth, every activation at 0.9:
-    the fit ends with
-    depressor labii inferioris L at 1 (true 0), at a cost of 3.3e-3 mm^2; fitted again from
-    there with the controls at 1 back near 0, it reaches 4.4e-5. The restart run must win, by
-    far, and end near the truth: measured 0.0032 mm from the scan, activations within 0.036.
-    (The cases this test used before, from the default start with a passive SMAS sheet added
-    to the map, stopped trapping when the buccinator was moved back along the teeth.)"""
+    default, ``(0.5, 0)``, does not trap here), four true controls (buccinator L at its bound,
+    1) and the jaw, fitted from a start far from the truth, every activation at 0.9: the fit
+    ends with depressor labii inferioris R at 1 (true 0), at a cost of 3.0e-3 mm^2; fitted
+    again from there with that control back near 0, it reaches 4.1e-4. The restart run must
+    win, by far, and end near the truth: measured 0.0076 mm from the scan, activations within
+    0.076. (The cases this test used before stopped trapping when the buccinator was moved
+    back along the teeth, and again when the zygomaticus major was laid under the cheek fat.)"""
     from jaxface.anatomy.jaw import JawPose
     from jaxface.anatomy.rig import build_rig, synthesize
     from jaxface.fit.pipeline import SubjectOptions, fit_expressions, subject_from_rig
@@ -468,16 +467,14 @@ def test_bound_flip_restart_leaves_a_minimum_with_a_saturated_control():
     head = generic_head()
     rig = build_rig(head, fat_volume=0.5)
     bound = SkinLandmarks.of_rig(rig)
-    truth = {"zygomaticus_major_L": 1.0, "zygomaticus_major_R": 0.45, "frontalis_medial_L": 0.5,
-             "frontalis_medial_R": 0.5, "corrugator_R": 0.3, "orbicularis_oris": 0.25,
-             "depressor_anguli_oris_L": 0.4, "levator_labii_superioris_alaeque_nasi_R": 0.35}
-    x = np.asarray(synthesize(rig, rig.activations(truth), JawPose(6.0, 1.0, 1.0)))
+    truth = {"buccinator_L": 1.0, "risorius_R": 0.6, "frontalis_lateral_L": 0.7, "mentalis_L": 0.4}
+    x = np.asarray(synthesize(rig, rig.activations(truth), JawPose(8.0, -1.0, 0.5)))
     subject = subject_from_rig(rig, scan_skin(np.asarray(rig.rest), bound), face_mask=head.face_mask,
                                options=SubjectOptions())
     (res,) = fit_expressions(subject, [scan_skin(x, bound)],
                              options=FitOptions(restart_iterations=4, init_activation=0.9))
     r = res.fit.restart
-    assert r and r["kept"] and r["cost_mm2"] < 0.1 * r["parent_cost_mm2"], r
+    assert r and r["kept"] and r["cost_mm2"] < 0.2 * r["parent_cost_mm2"], r
     # the trap: a control that is truly 0 was held at 1
     assert any(truth.get(n, 0.0) == 0.0 for n in r["controls"]), r
     assert res.solver_dict()["restart"]["kept"]
