@@ -177,10 +177,10 @@ class MuscleSystem(eqx.Module):
             outer); sph_bottom: ``(K, 3, n)``; sph_ctrl: ``(K,)``; sph_cmax: ``(K,)``;
             sph_axes: ``(K, 2, 3)``; sph_ab: ``(K, 2)`` semi-axes, mm.
         mod_w: ``(K, 3, n, 2)`` modiolus weights in [0, 1] of every sphincter ring sample,
-            toward the left (0) and the right (1) modiolus; mod_end, mod_last, mod_fw: ``(2, J)`` per side the
-            corner-muscle fibres' insertion-end sample (flat index into the ``(F * H)``
-            samples), their action-line end (fibre index) and weight (1 / fibres of the
-            muscle; 0 pads): see :data:`MODIOLUS_GAIN`.
+            toward the left (0) and the right (1) modiolus; mod_end, mod_last, mod_fw:
+            ``(2, J)`` per side the corner-muscle fibres' insertion-end sample (flat index
+            into the ``(F * H)`` samples), their action-line end (fibre index) and weight
+            (1 / fibres of the muscle; 0 pads): see :data:`MODIOLUS_GAIN`.
         groups: fused distance and bending groups (all muscles).
         vol_*: per-muscle volume data (:func:`multi_volume_project`).
         pos_inv_count: ``(Nm,)``; inv_mass: ``(Nm,)``.
