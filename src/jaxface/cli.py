@@ -235,17 +235,18 @@ def demo(
     """
     from .head import generic_head, save_head
 
-    if showcase and fit and not labels:
-        import jax
-
-        # as `jaxface fit`: the fits run in float64 (in float32 the Levenberg-Marquardt solves
-        # crept on to their step limit, and the surprise scan's activations came back 0.094
-        # off instead of 0.011)
-        jax.config.update("jax_enable_x64", True)
     report = None
     with status_steps("jaxface demo", quiet=quiet) as step:
         if showcase and not labels:
             from .showcase import run_showcase
+
+            if fit:
+                import jax
+
+                # as `jaxface fit`: the fits run in float64 (in float32 the Levenberg-Marquardt
+                # solves crept on to their step limit, and the surprise scan's activations came
+                # back 0.094 off instead of 0.011)
+                jax.config.update("jax_enable_x64", True)
 
             report = run_showcase(out, fit=fit, panel_px=size, progress=step)
             files = {"report": out / "report.md", "report_json": out / "report.json"}
