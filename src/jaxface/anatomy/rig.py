@@ -41,14 +41,20 @@ JAW_FOLLOW_MM = (30.0, 100.0)
 """Default ``(full, reach)`` distances from the chin of the jaw's pull on the soft tissue,
 reference mm (:func:`jaw_follow_weights`)."""
 
-#: Default sigma of the tissue footprint, reference mm (one value for the whole face).
-#: A ``(lower, upper)`` pair widens it over the forehead
-#: (:func:`~jaxface.anatomy.skin.footprint_sigma`). ``(5, 12)`` fits the Bosphorus-style
-#: scans better on average (0.878 against 0.890 mm; brow raisers UFAU_1 0.21 -> 0.16 mm and
-#: UFAU_2 0.43 -> 0.41 mm on bs900, the brow lowerer UFAU_4 0.46 -> 0.47 mm) but blurs the
-#: corrugator into its neighbours: the synthetic round trip then recovers it within 0.086
-#: instead of 0.031. So it is not the default (``benchmarks/bench_fit.py``).
-FOOTPRINT_MM = 5.0
+#: Default sigma of the tissue footprint, reference mm, ``(lower, upper)``: 10 mm in the lower
+#: face, narrowing to 5 mm from the eyes up to the brows
+#: (:func:`~jaxface.anatomy.skin.footprint_sigma`). A single 5 mm let the smile fold the skin
+#: over itself below the mouth corners: the displacement of the lower lip ring, pulled up
+#: 15 mm by the modiolus, fell to 4 mm within 2 mm of skin, and 30 anchor-target triangles
+#: (40 skin triangles) of AU12 on the default head inverted; 6 mm still inverted 10, 7 mm and
+#: more none. The wider footprint also fits the Bosphorus-style scans better
+#: (``benchmarks/bench_fit.py``, mean over the 20 expression scans): 0.821 mm with 5 mm,
+#: 0.787 with 7, 0.773 with 8, 0.752 with 10 (16 scans within 1 mm, was 15) and 0.757 with
+#: 14 mm, where the smiles got worse again (the last four with the eyelids' corner taper,
+#: :data:`~jaxface.anatomy.skin.LID_CORNER_TAPER`). The forehead keeps 5 mm: a wider one there,
+#: ``(5, 12)``, blurred the corrugator into its neighbours (the synthetic round trip then
+#: recovered it within 0.086 instead of 0.031).
+FOOTPRINT_MM = (10.0, 5.0)
 
 #: Default gain of the fat layer's volume preservation, ``(lower, upper)``
 #: (:func:`~jaxface.anatomy.skin.fat_thickness`): half in the lower face, blended to none
@@ -212,7 +218,7 @@ def build_rig(skin, landmarks=None, skull: Skull | None = None, muscle_map=None,
         footprint_mm: sigma of the tissue footprint (reference mm), or a ``(lower, upper)``
             pair: ``lower`` up to the inner eye corners, ``upper`` from the inner eyebrows up,
             blended in between (:func:`~jaxface.anatomy.skin.footprint_sigma`; see
-            :data:`FOOTPRINT_MM` for what ``(5, 12)`` does to the fits).
+            :data:`FOOTPRINT_MM` for why the default is ``(7, 5)``).
         influence_radius: influence-map falloff in normalised geodesic distance.
         eyelid_threshold: normalised geodesic distance of the eyelid region (thesis 0.04).
         bending: include the skin's dihedral bending constraints (thesis 0.95; off by default:

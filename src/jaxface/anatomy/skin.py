@@ -28,7 +28,8 @@ Build time (NumPy):
   the final state consistent with the collisions), and vertices with ``w = 0`` are kinematic;
 * **eyelids**: vertices within normalised geodesic distance 0.04 (tunable) of the eye border
   rotate about the axis through the eye corners (moved back onto the eyeball centre), upper
-  lid above the axis, lower lid below, with a smooth falloff toward the threshold;
+  lid above the axis, lower lid below, with a smooth falloff toward the threshold and a taper
+  to no rotation at the corners themselves (:data:`LID_CORNER_TAPER`: the lids hinge there);
 * **teeth**: convex hulls of the upper and lower teeth (:func:`jaxface.pbd.hull_planes`); the
   lower hull moves with the jaw (:func:`jaxface.pbd.transform_planes`); lip vertices inside a
   hull are pushed out through the nearest face (unilateral, resolved fully every sweep).
@@ -73,6 +74,9 @@ __all__ = [
 #: Range of the fat layer's thickness factor (:func:`fat_thickness`): the layer at most halves
 #: or doubles.
 FAT_RATIO_RANGE = (0.5, 2.0)
+#: Fraction of the eye width, from each corner, over which the lid rotation grows from 0 to
+#: full (:func:`eyelid_vertices`); 0 turns the taper off.
+LID_CORNER_TAPER = 0.4
 #: Thesis skin stiffness values (sec. 5.5).
 SKIN_STIFFNESS = dict(stretch=0.15, cross=0.15, bend=0.95, area=0.95, anchor=0.2, volume=1.0,
                       damping=0.2)
@@ -342,7 +346,9 @@ def eyelid_vertices(skin: TriMesh, frame: FaceFrame, side: str, threshold: float
     vertices.
 
     Returns:
-        ``(ids (K,), falloff (K,) in (0, 1], upper (K,) bool)``.
+        ``(ids (K,), falloff (K,) in (0, 1], upper (K,) bool)``; the falloff is the
+        geodesic one times a taper that is 0 at the eye corners and 1 from
+        :data:`LID_CORNER_TAPER` of the eye width inward.
     """
     inner = frame.points[f"Inner {side} eye corner"]
     outer = frame.points[f"Outer {side} eye corner"]
@@ -365,9 +371,15 @@ def eyelid_vertices(skin: TriMesh, frame: FaceFrame, side: str, threshold: float
     d = skin.geodesic_distance(border, normalise=True)
     ids = np.flatnonzero(d < threshold)
     fall = 1.0 - _smoothstep(d[ids] / threshold)
-    # upper / lower: above or below the corner line (in the face's up direction)
     rel = skin.vertices[ids] - inner
     u = (outer - inner) / width
+    # the lids hinge at the eye corners: the pivot axis lies on the eyeball centre, 12 mm
+    # behind the corners, so an untapered rotation would swing the corner vertices too and
+    # fold the upper lid over the lower one there (AU7 inverted 72 triangles on the ICT face)
+    if LID_CORNER_TAPER > 0:
+        t = (rel @ u) / width
+        fall = fall * _smoothstep(np.clip(np.minimum(t, 1.0 - t) / LID_CORNER_TAPER, 0.0, 1.0))
+    # upper / lower: above or below the corner line (in the face's up direction)
     up_dir = frame.axes[1] - u * (frame.axes[1] @ u)
     upper = rel @ up_dir > 0
     return ids, np.maximum(fall, 1e-3), upper
