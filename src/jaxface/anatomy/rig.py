@@ -53,7 +53,10 @@ reference mm (:func:`jaw_follow_weights`)."""
 #: 14 mm, where the smiles got worse again (the last four with the eyelids' corner taper,
 #: :data:`~jaxface.anatomy.skin.LID_CORNER_TAPER`). The forehead keeps 5 mm: a wider one there,
 #: ``(5, 12)``, blurred the corrugator into its neighbours (the synthetic round trip then
-#: recovered it within 0.086 instead of 0.031).
+#: recovered it within 0.086 instead of 0.031). The cost: the footprint matrix of the ICT
+#: face has 3x the entries (2.9 M), and a synthesis there takes 1.45x as long (65 against
+#: 45 ms); the lower-face muscles are less distinguishable in the synthetic round trip (on the
+#: ICT face the zygomaticus major, levator anguli oris and risorius have VIFs of 19-29).
 FOOTPRINT_MM = (10.0, 5.0)
 
 #: Default gain of the fat layer's volume preservation, ``(lower, upper)``
@@ -218,7 +221,7 @@ def build_rig(skin, landmarks=None, skull: Skull | None = None, muscle_map=None,
         footprint_mm: sigma of the tissue footprint (reference mm), or a ``(lower, upper)``
             pair: ``lower`` up to the inner eye corners, ``upper`` from the inner eyebrows up,
             blended in between (:func:`~jaxface.anatomy.skin.footprint_sigma`; see
-            :data:`FOOTPRINT_MM` for why the default is ``(7, 5)``).
+            :data:`FOOTPRINT_MM` for why the default is ``(10, 5)``).
         influence_radius: influence-map falloff in normalised geodesic distance.
         eyelid_threshold: normalised geodesic distance of the eyelid region (thesis 0.04).
         bending: include the skin's dihedral bending constraints (thesis 0.95; off by default:
