@@ -44,10 +44,10 @@ reference mm (:func:`jaw_follow_weights`)."""
 #: Default sigma of the tissue footprint, reference mm, ``(lower, upper)``: 10 mm in the lower
 #: face, narrowing to 5 mm from the eyes up to the brows
 #: (:func:`~jaxface.anatomy.skin.footprint_sigma`). A single 5 mm let the smile fold the skin
-#: over itself below the mouth corners: the displacement of the lower lip ring, pulled up
-#: 15 mm by the modiolus, fell to 4 mm within 2 mm of skin, and 30 anchor-target triangles
-#: (40 skin triangles) of AU12 on the default head inverted; 6 mm still inverted 10, 7 mm and
-#: more none. The wider footprint also fits the Bosphorus-style scans better
+#: over itself below the mouth corners: under the left corner the lower lip ring, pulled up
+#: 15 mm by the modiolus, was followed 2-5 mm lower by skin rising 10 mm and, 2 mm lower
+#: again, by skin rising 4 mm, and 30 anchor-target triangles (40 skin triangles) of AU12 on
+#: the default head inverted; 6 mm still inverted 10, 7 mm and more none. The wider footprint also fits the Bosphorus-style scans better
 #: (``benchmarks/bench_fit.py``, mean over the 20 expression scans): 0.821 mm with 5 mm,
 #: 0.787 with 7, 0.773 with 8, 0.752 with 10 (16 scans within 1 mm, was 15) and 0.757 with
 #: 14 mm, where the smiles got worse again (the last four with the eyelids' corner taper,
