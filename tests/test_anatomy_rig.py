@@ -386,14 +386,10 @@ def test_ict_eyelids_fold_little(ict):
     # about the eyeball centre all the way to the corners inverted 90 (AU43) and 54 (AU7)
     # triangles there; tapered toward the corners 28 and 2 (measured)
     f, rig, _ = ict
-    F = np.asarray(rig.triangles)
-    X0 = np.asarray(rig.rest)
-    n0 = np.cross(X0[F[:, 1]] - X0[F[:, 0]], X0[F[:, 2]] - X0[F[:, 0]])
     for au, most in (("AU43", 40), ("AU7", 6)):
         a, _, _ = facs.aus_to_controls({au: 1.0}, rig.muscle_names)
         x = np.asarray(synthesize(rig, jnp.asarray(a), JawPose(jnp.asarray(0.0))))
-        n = np.cross(x[F[:, 1]] - x[F[:, 0]], x[F[:, 2]] - x[F[:, 0]])
-        assert (np.einsum("ij,ij->i", n, n0) < 0).sum() <= most, au
+        assert len(_inverted_triangles(rig, x)) <= most, au
 
 
 def _rigid_fit(P, Q):
@@ -657,14 +653,13 @@ def test_a_symmetric_face_gets_a_symmetric_rig(rig, results):
     # 0.46 mm sideways (0.91 mm of asymmetry); before the sphincter ellipse reached the
     # farthest sample on either side of its centre, the left eye's ellipse was 20 mm wide and
     # the right eye's 33 mm, and AU6 was 0.43 mm asymmetric.
-    for case in ("AU2", "AU12", "AU15", "AU20", "AU23", "AU43", "pitch14", "lips_stretched_open"):
-        D = fr.to_local(results[0][case][0]) - R
-        assert np.linalg.norm(D - D[mirror] * flip, axis=1).max() < 1e-6, case
-    # muscles lying across the mid-line (procerus on both frontales) bind each mid-line
+    # Muscles lying across the mid-line (procerus on both frontales) bind each mid-line
     # particle to one side: measured 0.13 mm (AU1), 0.04 mm (AU4), 0.03 mm (AU9)
-    for case in ("AU1", "AU4", "AU9"):
+    tol = dict.fromkeys(("AU2", "AU12", "AU15", "AU20", "AU23", "AU43", "pitch14", "lips_stretched_open"), 1e-6)
+    tol.update(dict.fromkeys(("AU1", "AU4", "AU9"), 0.2))
+    for case, most in tol.items():
         D = fr.to_local(results[0][case][0]) - R
-        assert np.linalg.norm(D - D[mirror] * flip, axis=1).max() < 0.2, case
+        assert np.linalg.norm(D - D[mirror] * flip, axis=1).max() < most, case
     ab = {p.spec.name: p.semi_axes for p in info.placed if p.semi_axes is not None}
     np.testing.assert_allclose(ab["orbicularis_oculi_L"], ab["orbicularis_oculi_R"], atol=1e-9)
     D = fr.to_local(results[0]["AU12"][0]) - R
