@@ -302,6 +302,27 @@ def test_a_fit_whose_active_set_still_changes_goes_on(round_trip):
         assert abs(res.activations[n] - v) < 0.05, (n, res.activations[n], v)
 
 
+def test_a_fit_stopped_at_max_steps_goes_on(round_trip):
+    """An inner solve cut off at ``max_steps`` has not converged even when it moved little:
+    the fit must say so without extra iterations, and with them start the next solve where
+    that one stopped until a solve meets its tolerance."""
+    import dataclasses
+
+    from jaxface.fit.pipeline import fit_expressions
+
+    subject, _, _, opt, expr = round_trip[:5]
+    short = dataclasses.replace(opt, max_steps=6, extra_iterations=0)
+    (cut,) = fit_expressions(subject, [expr], options=short)
+    assert cut.fit.reports[-1].result == "nonlinear_max_steps_reached", cut.solver_dict()
+    assert cut.status == "nonlinear_max_steps_reached"
+    longer = dataclasses.replace(short, extra_iterations=12)
+    (res,) = fit_expressions(subject, [expr], options=longer)
+    assert len(res.fit.reports) > len(cut.fit.reports)
+    assert res.status == "successful", res.solver_dict()
+    for r in res.fit.reports[len(cut.fit.reports):-1]:
+        assert r.result == "nonlinear_max_steps_reached" or r.cost < r.cost0, r
+
+
 def test_fit_rejects_unknown_controls(round_trip):
     from jaxface.fit.solve import fit_points
 

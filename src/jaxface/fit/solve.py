@@ -218,7 +218,10 @@ class FitOptions:
             hardly sees, the cost falling by well under 1 %, and following them lowered no
             truth error.) A scan whose active set of bounds was still changing after the
             ``active_set_rounds`` of its last iteration also goes on; one still changing at the
-            end is reported as ``"active_set_changing"``.
+            end is reported as ``"active_set_changing"``. So does one whose last inner solve
+            stopped at ``max_steps``: the next solve starts where it stopped (on the default
+            head's synthetic surprise scan the fit stopped there with small spurious
+            activations at twice the cost of the truth; four more iterations reached it).
         converge_activation: see ``extra_iterations`` (unit activation).
         converge_jaw: see ``extra_iterations`` (degrees and mm).
         converge_cost: see ``extra_iterations`` (relative decrease of the inner cost).
@@ -1408,8 +1411,8 @@ def fit_points(
     def step_and_track(k, act):
         """outer_step, and whether each run is still converging: its inner cost fell by more
         than ``converge_cost`` and its parameters moved by more than their tolerances, or its
-        active set of bounds still changed in the iteration's last round
-        (FitOptions.extra_iterations)."""
+        active set of bounds still changed in the iteration's last round, or its inner solve
+        stopped at ``max_steps`` (FitOptions.extra_iterations)."""
         before = [params_of(i) for i in act]
         cost = outer_step(k, act)
         move = []
@@ -1419,7 +1422,7 @@ def fit_points(
             gain = (rp.cost0 - rp.cost) / max(rp.cost0, 1e-300)
             move.append(bool((np.max(np.abs(a1 - a0), initial=0.0) > opt.converge_activation
                               or np.max(np.abs(j1 - j0)) > opt.converge_jaw) and gain > opt.converge_cost)
-                        or last_changes[i] > 0)
+                        or last_changes[i] > 0 or rp.result == "nonlinear_max_steps_reached")
         return cost, np.asarray(move, bool)
 
     for k in range(outer):
