@@ -59,6 +59,11 @@ reference mm (:func:`jaw_follow_weights`)."""
 #: ICT face the zygomaticus major, levator anguli oris and risorius have VIFs of 19-29).
 FOOTPRINT_MM = (10.0, 5.0)
 
+#: Default width of the vertex clusters the wide rows of the tissue footprint draw on,
+#: reference mm (:func:`~jaxface.anatomy.skin.footprint_operator`): rows at least 1.5 cluster
+#: widths wide weight clusters instead of single vertices. 0 = none.
+FOOTPRINT_CLUSTER_MM = 5.0
+
 #: Default gain of the fat layer's volume preservation, ``(lower, upper)``
 #: (:func:`~jaxface.anatomy.skin.fat_thickness`): half in the lower face, blended to none
 #: from the eyes up to the brows. On the Bosphorus-style scans (``benchmarks/bench_fit.py``,
@@ -69,7 +74,7 @@ FOOTPRINT_MM = (10.0, 5.0)
 #: the frontalis). 0 turns it off.
 FAT_VOLUME = (0.5, 0.0)
 
-__all__ = ["FAT_VOLUME", "FOOTPRINT_MM", "JAW_FOLLOW_MM", "Rig", "RigInfo", "SynthState", "build_rig", "jaw_follow_weights", "synthesize",
+__all__ = ["FAT_VOLUME", "FOOTPRINT_CLUSTER_MM", "FOOTPRINT_MM", "JAW_FOLLOW_MM", "Rig", "RigInfo", "SynthState", "build_rig", "jaw_follow_weights", "synthesize",
            "synthesize_state", "simulate"]
 
 
@@ -201,7 +206,7 @@ def _as_mesh(skin) -> TriMesh:
 def build_rig(skin, landmarks=None, skull: Skull | None = None, muscle_map=None, backend: str = "pbd",
               *, upper_teeth: TriMesh | None = None, lower_teeth: TriMesh | None = None,
               muscle_iterations: int = 32, skin_iterations: int = 8, footprint_mm: float | tuple = FOOTPRINT_MM,
-              influence_radius: float = 0.15, eyelid_threshold: float = 0.04,
+              footprint_cluster_mm: float = FOOTPRINT_CLUSTER_MM, influence_radius: float = 0.15, eyelid_threshold: float = 0.04,
               bending: bool = False, jaw_follow_mm: tuple[float, float] = JAW_FOLLOW_MM,
               jaw_membrane: bool = False, skin_chebyshev_rho: float = 0.0,
               muscle_shell_stiffness: float = SHELL_STIFFNESS, fat_volume: float | tuple = FAT_VOLUME):
@@ -222,6 +227,8 @@ def build_rig(skin, landmarks=None, skull: Skull | None = None, muscle_map=None,
             pair: ``lower`` up to the inner eye corners, ``upper`` from the inner eyebrows up,
             blended in between (:func:`~jaxface.anatomy.skin.footprint_sigma`; see
             :data:`FOOTPRINT_MM` for why the default is ``(10, 5)``).
+        footprint_cluster_mm: width of the vertex clusters the footprint's wide rows draw on
+            (reference mm, :data:`FOOTPRINT_CLUSTER_MM`); 0 = the exact footprint.
         influence_radius: influence-map falloff in normalised geodesic distance.
         eyelid_threshold: normalised geodesic distance of the eyelid region (thesis 0.04).
         bending: include the skin's dihedral bending constraints (thesis 0.95; off by default:
@@ -332,7 +339,8 @@ def build_rig(skin, landmarks=None, skull: Skull | None = None, muscle_map=None,
         eyelids.append((lid_ids, fall, upper, len(eyelids), pm.centre, pm.axes[0], angles))
     skin_sys = build_skin_system(mesh, frame, binding, ids, w, influence=infl, eyelids=eyelids,
                                  teeth=(skull.upper_teeth, skull.lower_teeth),
-                                 footprint_mm=footprint_mm, bending=bending,
+                                 footprint_mm=footprint_mm, footprint_cluster_mm=footprint_cluster_mm,
+                                 bending=bending,
                                  iterations=skin_iterations, membrane=membrane,
                                  fat_volume=fat_volume)
     jaw = JawModel.from_landmarks(frame)

@@ -62,6 +62,9 @@ __all__ = [
     "bind_skin",
     "influence_map",
     "footprint_matrix",
+    "footprint_clusters",
+    "footprint_operator",
+    "Footprint",
     "footprint_sigma",
     "eyelid_vertices",
     "build_skin_system",
@@ -292,6 +295,140 @@ def footprint_matrix(skin: TriMesh, sigma, *, chunk: int = 512) -> sp.csr_matrix
     return sp.diags(1.0 / np.maximum(rs, 1e-300)) @ M
 
 
+def mirror_vertices(skin: TriMesh, frame: FaceFrame, tol_mm: float = 1e-6) -> np.ndarray | None:
+    """``(V,)`` each vertex's mirror image across the face's mid-sagittal plane, when the
+    skin is a mirror image of itself to ``tol_mm`` (mm); None otherwise (scans, the ICT face)."""
+    from scipy.spatial import cKDTree
+
+    R = frame.to_local(skin.vertices)
+    d, m = cKDTree(R).query(R * np.array([-1.0, 1.0, 1.0]))
+    if d.max() > tol_mm or np.any(m[m] != np.arange(len(m))):
+        return None
+    return m
+
+
+def footprint_clusters(skin: TriMesh, spacing_mm: float, mirror: np.ndarray | None = None) -> sp.csr_matrix:
+    """Geodesic clusters of the skin's vertices, about ``spacing_mm`` (mm) across.
+
+    Centres are picked greedily (vertex order): a vertex farther than ``spacing_mm / 2``
+    along the surface from every centre so far becomes one. Every vertex then joins the centre
+    nearest along the surface (edge-graph Dijkstra), so a cluster never reaches across the
+    mouth or eye openings, and every vertex lies within ``spacing_mm / 2`` of its centre.
+
+    With ``mirror`` ``(V,)`` (each vertex's mirror image on a symmetric face) the clusters are
+    mirror images too: a centre's mirror image becomes a centre with it, and a vertex equally
+    far from two centres (on the mid-line: from a centre and its mirror image) belongs half
+    to each.
+
+    Returns:
+        ``(V, C)`` membership: row ``v`` holds the share of vertex ``v`` in each cluster (rows
+        sum to 1), the columns are ordered by centre vertex.
+    """
+    if not np.isfinite(spacing_mm) or spacing_mm <= 0:
+        raise RigError(f"the footprint's cluster spacing must be positive and finite (mm), got {spacing_mm!r}.")
+    V = skin.n_vertices
+    g = _edge_matrix(skin, np.maximum(_edge_lengths(skin), 1e-9))
+    covered = np.zeros(V, bool)
+    centres = []
+    for v in range(V):
+        if covered[v]:
+            continue
+        pick = [v] if mirror is None else sorted({v, int(mirror[v])})
+        centres += pick
+        covered |= np.isfinite(dijkstra(g, directed=False, indices=pick, limit=0.5 * spacing_mm)).any(axis=0)
+    centres = np.asarray(sorted(centres), np.int64)
+    _, _, src = dijkstra(g, directed=False, indices=centres, min_only=True, return_predecessors=True)
+    own = np.searchsorted(centres, src)
+    rows, cols = [np.arange(V)], [own]
+    if mirror is not None:
+        cmirror = np.searchsorted(centres, np.asarray(mirror)[centres])
+        other = cmirror[own[np.asarray(mirror)]]   # the mirror image of the mirror vertex's cluster
+        rows.append(np.arange(V))
+        cols.append(other)
+    r, c = np.concatenate(rows), np.concatenate(cols)
+    P = sp.csr_matrix((np.ones(len(r)), (r, c)), shape=(V, len(centres)))
+    P.data = np.minimum(P.data, 1.0)               # a vertex counted twice for one cluster
+    return sp.diags(1.0 / np.asarray(P.sum(axis=1)).ravel()) @ P
+
+
+#: A footprint row whose sigma is at least this many cluster widths draws on clusters
+#: (:func:`footprint_operator`).
+CLUSTER_RATIO = 1.5
+
+
+@dataclass(frozen=True)
+class Footprint:
+    """The tissue footprint as an operator (:func:`footprint_operator`): ``out = W @ s`` with
+    ``s = [d; P^T d]``, the ``(V,)`` per-vertex values ``d`` followed by their ``(C,)`` sums
+    over each cluster (``P`` the ``(V, C)`` membership, :func:`footprint_clusters`).
+
+    Attributes:
+        rows, cols, vals: ``W`` in COO form, ``(V, V + C)``; a row draws either on single
+            vertices (columns ``< V``) or on clusters (columns ``>= V``).
+        member_v, member_c, member_w: ``P`` in COO form (empty when no row uses clusters).
+        n_clusters: ``C``.
+    """
+
+    rows: np.ndarray
+    cols: np.ndarray
+    vals: np.ndarray
+    member_v: np.ndarray
+    member_c: np.ndarray
+    member_w: np.ndarray
+    n_clusters: int
+
+    def apply(self, d: np.ndarray) -> np.ndarray:
+        """``W @ [d; P^T d]`` for ``d`` ``(V, ...)`` (NumPy reference of the JAX path)."""
+        d = np.asarray(d, np.float64).reshape(len(d), -1)
+        s = d
+        if self.n_clusters:
+            P = sp.csr_matrix((self.member_w, (self.member_v, self.member_c)), shape=(len(d), self.n_clusters))
+            s = np.concatenate([d, P.T @ d])
+        W = sp.csr_matrix((self.vals, (self.rows, self.cols)), shape=(len(d), s.shape[0]))
+        return W @ s
+
+    def dense(self, n_vertices: int) -> np.ndarray:
+        """The equivalent ``(V, V)`` matrix (tests; memory grows as ``V^2``)."""
+        return self.apply(np.eye(n_vertices))
+
+
+def footprint_operator(skin: TriMesh, sigma, *, cluster_mm: float = 0.0,
+                       mirror: np.ndarray | None = None) -> Footprint:
+    """The row-normalised geodesic Gaussian footprint (:func:`footprint_matrix`), with the
+    wide rows summed over clusters of vertices instead of single vertices.
+
+    A row whose ``sigma`` (mm) is at least ``CLUSTER_RATIO * cluster_mm`` gives each cluster
+    (:func:`footprint_clusters`, ``cluster_mm`` across, mirror images of each other with
+    ``mirror``) the mean of its weights of the cluster's vertices, and is applied to the
+    cluster sums: it averages a constant exactly, and a field that varies linearly over each
+    cluster to within the covariance of the Gaussian and the field over a cluster. Such a row
+    draws on several times fewer entries; the other rows are those of
+    :func:`footprint_matrix`. ``cluster_mm = 0``: no clusters (the exact matrix).
+    """
+    V = skin.n_vertices
+    sig = np.broadcast_to(np.asarray(sigma, np.float64), (V,))
+    if not np.all(np.isfinite(sig)) or sig.min() <= 0:
+        raise RigError("the tissue footprint's sigma must be positive and finite (mm).")
+    wide = sig >= CLUSTER_RATIO * cluster_mm if cluster_mm > 0 else np.zeros(V, bool)
+    F = footprint_matrix(skin, sig).tocsr()
+    none = np.zeros(0, np.int64)
+    if not wide.any():
+        F = F.tocoo()
+        return Footprint(F.row.astype(np.int64), F.col.astype(np.int64), F.data, none, none, np.zeros(0), 0)
+    P = footprint_clusters(skin, cluster_mm, mirror)
+    C = P.shape[1]
+    count = np.asarray(P.sum(axis=0)).ravel()
+    narrow, wide_ids = np.flatnonzero(~wide), np.flatnonzero(wide)
+    Fn = F[narrow].tocoo()
+    # a wide row's weight of a cluster: the mean of its weights of the cluster's vertices
+    Fw = (F[wide_ids] @ P @ sp.diags(1.0 / count)).tocoo()
+    Pc = P.tocoo()
+    return Footprint(np.concatenate([narrow[Fn.row], wide_ids[Fw.row]]).astype(np.int64),
+                     np.concatenate([Fn.col, V + Fw.col]).astype(np.int64),
+                     np.concatenate([Fn.data, Fw.data]),
+                     Pc.row.astype(np.int64), Pc.col.astype(np.int64), Pc.data, C)
+
+
 def _upper_face_blend(skin: TriMesh, frame: FaceFrame) -> np.ndarray:
     """``(V,)`` in [0, 1]: 0 up to the height of the inner eye corners, 1 from the height of
     the inner eyebrows, smoothstep in between (the lower/upper split of the face's tissue)."""
@@ -395,7 +532,10 @@ class SkinSystem(eqx.Module):
         rest: ``(V, 3)`` rest skin, mm.
         bind_ids, bind_w: ``(V, 3)`` support ids / weights of each vertex's surface point.
         bind_offset: ``(V, 3)`` rest offset ``p0 - sp0``, mm.
-        fp_rows, fp_cols, fp_vals: the footprint matrix (COO).
+        fp_rows, fp_cols, fp_vals: the footprint operator's matrix (COO, :class:`Footprint`);
+            fp_member_v, fp_member_c, fp_member_w: the cluster membership (COO); fp_count:
+            ``(C,)`` vertices per cluster (its length is the static ``C``); all ``(0,)``
+            without clusters.
         influence: ``(V,)``; inv_mass: ``(V,)`` (0 = kinematic).
         anchor_k: ``(V,)`` anchor stiffness; anchor_inv_count: ``(V,)``.
         lid_ids, lid_fall, lid_pivot, lid_axis, lid_ctrl_angles: eyelids.
@@ -417,6 +557,10 @@ class SkinSystem(eqx.Module):
     fp_rows: jax.Array
     fp_cols: jax.Array
     fp_vals: jax.Array
+    fp_member_v: jax.Array
+    fp_member_c: jax.Array
+    fp_member_w: jax.Array
+    fp_count: jax.Array
     influence: jax.Array
     inv_mass: jax.Array
     anchor_k: jax.Array
@@ -468,7 +612,8 @@ def _hull_group(teeth: TriMesh | None, skin_x: np.ndarray, candidates_margin: fl
 
 def build_skin_system(skin: TriMesh, frame: FaceFrame, binding: Binding, support_ids, support_w,
                       *, influence: np.ndarray, eyelids: list, teeth=(None, None),
-                      footprint_mm: float = 3.5, stiffness: dict | None = None,
+                      footprint_mm: float = 3.5, footprint_cluster_mm: float = 0.0,
+                      stiffness: dict | None = None,
                       bending: bool = True, iterations: int = 12, lid_stiffness: float = 0.9,
                       puff_mm: float = 8.0, membrane: np.ndarray | None = None,
                       fat_volume: float = 0.0) -> SkinSystem:
@@ -485,6 +630,8 @@ def build_skin_system(skin: TriMesh, frame: FaceFrame, binding: Binding, support
         teeth: ``(upper, lower)`` teeth meshes or None.
         footprint_mm: sigma of the tissue footprint (reference mm), or a ``(lower, upper)``
             pair (:func:`footprint_sigma`).
+        footprint_cluster_mm: width of the vertex clusters the wide footprint rows draw on
+            (reference mm; :func:`footprint_operator`); 0 = none.
         stiffness: overrides of :data:`SKIN_STIFFNESS`.
         bending: include the dihedral bending constraints.
         iterations: static sweeps of the quasi-static solve.
@@ -533,7 +680,9 @@ def build_skin_system(skin: TriMesh, frame: FaceFrame, binding: Binding, support
     if k["volume"] > 0:
         vol = pbd.volume_constraint(tri, x, origin=head_centre(frame), stiffness=k["volume"])
     # footprint
-    F = footprint_matrix(skin, footprint_sigma(skin, frame, footprint_mm)).tocoo()
+    F = footprint_operator(skin, footprint_sigma(skin, frame, footprint_mm),
+                           cluster_mm=float(footprint_cluster_mm) * frame.mean_scale,
+                           mirror=mirror_vertices(skin, frame))
     # eyelids
     lid_ids, lid_fall, lid_upper, lid_side, piv, axs, angs = [], [], [], [], [], [], []
     for (ids, fall, upper, side, pivot, axis, angles) in eyelids:
@@ -574,7 +723,9 @@ def build_skin_system(skin: TriMesh, frame: FaceFrame, binding: Binding, support
     return SkinSystem(
         rest=to_jax(x), bind_ids=to_jax(support_ids), bind_w=to_jax(support_w),
         bind_offset=to_jax(x - binding.point),
-        fp_rows=to_jax(F.row), fp_cols=to_jax(F.col), fp_vals=to_jax(F.data),
+        fp_rows=to_jax(F.rows), fp_cols=to_jax(F.cols), fp_vals=to_jax(F.vals),
+        fp_member_v=to_jax(F.member_v), fp_member_c=to_jax(F.member_c), fp_member_w=to_jax(F.member_w),
+        fp_count=to_jax(np.bincount(F.member_c, weights=F.member_w, minlength=F.n_clusters)),
         influence=to_jax(infl), inv_mass=to_jax(inv_mass), anchor_k=to_jax(anchor_k),
         anchor_ids=jnp.arange(V), anchor_inv_count=to_jax(acnt),
         lid_ids=to_jax(np.concatenate(lid_ids) if lid_ids else np.zeros(0, np.int64)),
@@ -620,7 +771,12 @@ def skin_targets(sk: SkinSystem, G, activations, cheek_puff=0.0):
         fat = fat_thickness(sp_, sk.fat_tri, sk.fat_area0, sk.fat_gain, sk.fat_ratio)
         offset = offset * fat[:, None]
     disp = sp_ + offset - rest
-    disp = jax.ops.segment_sum(sk.fp_vals.astype(dt)[:, None] * disp[sk.fp_cols], sk.fp_rows,
+    src = disp
+    if sk.fp_count.shape[0]:
+        sums = jax.ops.segment_sum(sk.fp_member_w.astype(dt)[:, None] * disp[sk.fp_member_v], sk.fp_member_c,
+                                   num_segments=sk.fp_count.shape[0])
+        src = jnp.concatenate([disp, sums])
+    disp = jax.ops.segment_sum(sk.fp_vals.astype(dt)[:, None] * src[sk.fp_cols], sk.fp_rows,
                                num_segments=rest.shape[0])
     disp = disp * sk.influence.astype(dt)[:, None]
     if sk.mem_ids.shape[0]:
