@@ -4,6 +4,7 @@ Run from the repository root::
 
     JAXFACE_SHARED=../shared python benchmarks/bench_synth.py [--dtype float32|float64] [--repeat 7]
         [--sweeps 32/8,256/16,...] [--expressions] [--no-jacobian] [--muscle-shell 0]
+        [--footprint-clusters 0,6]
 
 Prints a table and writes ``benchmarks/results/bench_synth.json``. Measures (ICT-FaceKit face
 region, 9,409 vertices, with its teeth):
@@ -23,6 +24,9 @@ region, 9,409 vertices, with its teeth):
   converged the solve is beyond the one benchmark expression;
 * with ``--muscle-shell 0``: all of the above for the thesis's muscle, without the shell
   constraint (:func:`jaxface.anatomy.muscles.shell_targets`);
+* with ``--footprint-clusters 0,6`` (default ``0``): the synthesis with other cluster widths
+  of the tissue footprint (0 = the exact footprint), timed alternately with the default's, with
+  the largest vertex distance to the default's result;
 * batch throughput with ``jax.vmap`` (syntheses per second at batch 8 and 32);
 * a forward-mode Jacobian over all controls and the jaw pitch (``jax.jacfwd``), the operation
   the fitter repeats.
@@ -102,6 +106,10 @@ def main():
                     help="also measure the convergence on the six emotions, AU26 and all controls at 1")
     ap.add_argument("--muscle-shell", type=float, default=None,
                     help="the muscles' shell stiffness (default: the rig's, 1; 0 = the thesis's muscle)")
+    ap.add_argument("--footprint-clusters", default="0",
+                    help="comma-separated cluster widths (reference mm) of the tissue footprint to time "
+                         "beside the default, side by side, 0 = the exact footprint "
+                         "(jaxface.anatomy.skin.footprint_operator)")
     ap.add_argument("--sweeps", default="",
                     help="comma-separated muscle/skin sweep counts for the time-accuracy curve, "
                          "e.g. 32/8,128/8,256/16 (each compiles once); a third number turns on the "
@@ -139,6 +147,30 @@ def main():
                                          skin=10 * rig.skin.iterations), a, jaw)
     res["convergence_mm_vs_10x_sweeps"] = float(jnp.abs(x - ref).max())
     res["motion_mm"] = float(jnp.linalg.norm(x - rig.rest, axis=1).max())
+    if args.footprint_clusters:
+        # the same synthesis with other footprint cluster widths, timed alternately with the
+        # default so that both see the same machine
+        from jaxface.anatomy.rig import FOOTPRINT_CLUSTER_MM
+
+        fp = {"default_cluster_mm": FOOTPRINT_CLUSTER_MM, "default_nnz": int(rig.skin.fp_vals.shape[0]),
+              "other": []}
+        for item in args.footprint_clusters.split(","):
+            h = float(item)
+            r = build_rig(f.skin, f.landmarks, upper_teeth=f.upper_teeth, lower_teeth=f.lower_teeth,
+                          footprint_cluster_mm=h, **kw)
+            t_def, t_oth = [], []
+            for _ in range(3):
+                t_def.append(_time(synthesize, rig, a, jaw, repeat=args.repeat)[1])
+                t_oth.append(_time(synthesize, r, a, jaw, repeat=args.repeat)[1])
+            d = np.linalg.norm(np.asarray(synthesize(r, a, jaw)) - np.asarray(x), axis=1)
+            row = {"cluster_mm": h, "nnz": int(r.skin.fp_vals.shape[0]), "ms_min": min(t_oth),
+                   "default_ms_min": min(t_def), "ratio_over_default": min(t_oth) / min(t_def),
+                   "max_mm_from_default": float(d.max()), "p99_mm_from_default": float(np.percentile(d, 99))}
+            fp["other"].append(row)
+            print(f"footprint clusters {h:g} mm: {row['nnz']} entries (default {fp['default_nnz']}), "
+                  f"{row['ms_min']:.1f} ms against {row['default_ms_min']:.1f} ms (x{row['ratio_over_default']:.2f}), "
+                  f"max {d.max():.3f} / p99 {np.percentile(d, 99):.3f} mm from the default", flush=True)
+        res["footprint"] = fp
     if args.sweeps:
         deep = np.asarray(synthesize(rig.with_iterations(muscles=3000, skin=400), a, jaw))
         curve = []

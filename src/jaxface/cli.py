@@ -260,7 +260,7 @@ def demo(
     if report is not None:
         table = Table(title=f"jaxface demo: report in {out / 'report.md'}")
         for col in ("scan", "status", "scan->fit mm", "skin error mm", "jaw pitch true/fit", "strongest AUs"):
-            table.add_column(col)
+            table.add_column(col, overflow="fold")   # a narrow terminal wraps, never cuts, a name
         for f in report.get("fits", []):
             table.add_row(f["stem"], f["status"], f"{f['scan_to_fit_mean_mm']:.3f}",
                           f"{f['skin_error_mm']['mean']:.3f}",

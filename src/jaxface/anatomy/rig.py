@@ -53,15 +53,25 @@ reference mm (:func:`jaw_follow_weights`)."""
 #: 14 mm, where the smiles got worse again (the last four with the eyelids' corner taper,
 #: :data:`~jaxface.anatomy.skin.LID_CORNER_TAPER`). The forehead keeps 5 mm: a wider one there,
 #: ``(5, 12)``, blurred the corrugator into its neighbours (the synthetic round trip then
-#: recovered it within 0.086 instead of 0.031). The cost: the footprint matrix of the ICT
-#: face has 3x the entries (2.9 M), and a synthesis there takes 1.45x as long (65 against
-#: 45 ms); the lower-face muscles are less distinguishable in the synthetic round trip (on the
-#: ICT face the zygomaticus major, levator anguli oris and risorius have VIFs of 19-29).
+#: recovered it within 0.086 instead of 0.031). The cost: the exact footprint matrix of the
+#: ICT face has 3x the entries (2.9 M) and made a synthesis there 1.45x as long (65 against
+#: 45 ms), which :data:`FOOTPRINT_CLUSTER_MM` mostly wins back; the lower-face muscles are
+#: less distinguishable in the synthetic round trip (on the ICT face the zygomaticus major,
+#: levator anguli oris and risorius have VIFs of 19-38).
 FOOTPRINT_MM = (10.0, 5.0)
 
 #: Default width of the vertex clusters the wide rows of the tissue footprint draw on,
 #: reference mm (:func:`~jaxface.anatomy.skin.footprint_operator`): rows at least 1.5 cluster
-#: widths wide weight clusters instead of single vertices. 0 = none.
+#: widths wide (the 10 mm lower face) weight clusters instead of single vertices, with the
+#: mean of their weights of the cluster's vertices. On the ICT face the operator has 1.16 M
+#: entries instead of 2.92 M, and a synthesis takes 49.5 against 70.2 ms with the exact
+#: footprint, timed side by side (``bench_synth.py --footprint-clusters 0``), 0.23 mm from it
+#: at most for that benchmark's AU6 + AU12 + AU26 (0.13 mm 99th percentile). Anger, disgust,
+#: fear, sadness, surprise, AU1, AU4, AU9, AU15 and AU20 stay within 0.09 mm of it; AU12
+#: and happiness within 0.3 mm but for one vertex under the lower lip, 1.5 mm off (it lags
+#: its neighbours by 1-2 mm with either footprint). 6 mm clusters were only 3 % faster
+#: again. The mean fit error on the Bosphorus-style scans stayed 0.752 mm.
+#: 0 = the exact footprint.
 FOOTPRINT_CLUSTER_MM = 5.0
 
 #: Default gain of the fat layer's volume preservation, ``(lower, upper)``

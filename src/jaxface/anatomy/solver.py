@@ -20,12 +20,13 @@ as *one* vectorised block instead:
 
 :func:`iterate` runs a fixed number of sweeps, plain or with Chebyshev semi-iterative
 acceleration (the skin solve's option ``SkinSystem.chebyshev_rho``). Measured on the ICT face
-(``benchmarks/bench_synth.py --expressions``, 2-core CPU): 48 muscle / 80 skin sweeps with the
-acceleration (rho 0.98) take 164 ms and end within 0.05 mm of a 3,000 / 400-sweep plain solve
-for each of the six emotions, a jaw opening and every control at 1; 64 / 96 sweeps take 195 ms
-and end within 0.002 mm. The exception is three lip vertices against the teeth in the last two
-cases: they settle 0.40 mm from where the plain solve puts them. The default 32 / 8 plain
-sweeps (31 ms) are 1.5 mm off at most.
+(``benchmarks/bench_synth.py --sweeps 48/80/0.98,64/96/0.98 --expressions``, 2-core CPU): 48
+muscle / 80 skin sweeps with the acceleration (rho 0.98) take 280 ms and end within 0.01 mm of a
+3,000 / 400-sweep plain solve for each of the six emotions, a jaw opening and every control at
+1 (99th percentile 0.001 mm). The exception is a few lip vertices against the teeth in
+happiness and with every control at 1: they settle 0.35 and 0.57 mm from where the plain solve
+puts them. 64 / 96 sweeps take 330 ms and are no closer. The default 32 / 8 plain sweeps
+(50 ms) are 1.6 mm off at most.
 
 Everything is pure JAX: jit-able, vmap-able, differentiable in positions, anchor targets,
 stiffness and rest values. Units: mm (positions), inverse masses 1/g.

@@ -164,9 +164,9 @@ def _safe_name(s: str) -> str:
 #: their distance to a 3,000 / 400-sweep plain solve on the ICT face (the six emotions, AU26
 #: and every control at 1; ``benchmarks/bench_synth.py --expressions``, 2-core CPU).
 SWEEP_PRESETS = {
-    "fast": (32, 8, 0.0),        # the default: ~31 ms, up to 1.5 mm off
-    "converged": (48, 80, 0.98),  # ~164 ms, within 0.05 mm (3 lip-teeth vertices 0.4 mm)
-    "reference": (64, 96, 0.98),  # ~195 ms, within 0.002 mm (the same 3 vertices 0.4 mm)
+    "fast": (32, 8, 0.0),        # the default: ~50 ms, up to 1.6 mm off
+    "converged": (48, 80, 0.98),  # ~280 ms, within 0.01 mm (lip-teeth vertices up to 0.57 mm)
+    "reference": (64, 96, 0.98),  # ~330 ms, no closer than "converged" on these cases
 }
 
 
@@ -239,11 +239,11 @@ def register(app: typer.Typer) -> None:
         pictures: bool = typer.Option(True, "--pictures/--no-pictures", help="Write a PNG per expression."),
         sweeps: Optional[str] = typer.Option(  # noqa: UP007
             None, "--sweeps", help="Quasi-static solve of the pbd backend as MUSCLE/SKIN sweeps (default "
-            "32/8, ~30 ms on the ICT face, up to 1.5 mm from the converged face). An optional third "
+            "32/8, ~50 ms on the ICT face, up to 1.6 mm from the converged face). An optional third "
             "number turns on the Chebyshev acceleration of the skin solve with that spectral-radius "
-            "estimate. Presets: 'converged' = 48/80/0.98 (~165 ms, within 0.05 mm of the converged "
-            "face), 'reference' = 64/96/0.98 (~195 ms, within 0.002 mm); both leave 3 lip vertices "
-            "at another contact with the teeth, 0.4 mm away (python benchmarks/bench_synth.py "
+            "estimate. Presets: 'converged' = 48/80/0.98 (~280 ms, within 0.01 mm of the converged "
+            "face), 'reference' = 64/96/0.98 (~330 ms, no closer); both leave a few lip vertices "
+            "at another contact with the teeth, up to 0.57 mm away (python benchmarks/bench_synth.py "
             "--sweeps 48/80/0.98,64/96/0.98 --expressions). More plain sweeps, e.g. 3000/400, give "
             "the plain solve's own fixed point."),
         compare_backends: bool = typer.Option(
