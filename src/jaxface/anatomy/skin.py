@@ -16,7 +16,8 @@ Build time (NumPy):
   (sigma ``footprint_mm``, one value or a ``(lower, upper)`` pair blended from the eyes up to
   the brows, :func:`footprint_sigma`) of the displacements of the surface points bound around
   it, a model of the fat layer that spreads a muscle's pull over the skin (without it the skin
-  would shear sharply along every muscle border);
+  would shear sharply along every muscle border); the wide rows average over geodesic clusters
+  of vertices instead of single vertices (:func:`footprint_operator`), for speed;
 * **fat volume** (our addition, after the volume preservation of Lee, Terzopoulos and Waters
   1995): the offset ``p0 - sp0`` is the fat between the skin and its surface point; where the
   bound surface points around a vertex squeeze together its fat thickens, where they spread it
@@ -66,6 +67,7 @@ __all__ = [
     "footprint_operator",
     "Footprint",
     "footprint_sigma",
+    "mirror_vertices",
     "eyelid_vertices",
     "build_skin_system",
     "skin_targets",
