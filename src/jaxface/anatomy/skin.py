@@ -221,6 +221,11 @@ def _edge_lengths(skin: TriMesh) -> np.ndarray:
     return np.linalg.norm(skin.vertices[e[:, 0]] - skin.vertices[e[:, 1]], axis=1)
 
 
+def _geodesic_graph(skin: TriMesh) -> sp.csr_matrix:
+    """The skin's edge graph weighted by edge length (mm, floored at 1e-9), for Dijkstra."""
+    return _edge_matrix(skin, np.maximum(_edge_lengths(skin), 1e-9))
+
+
 def _edge_matrix(skin: TriMesh, values: np.ndarray) -> sp.csr_matrix:
     """Symmetric ``(V, V)`` sparse matrix with ``values`` (one per edge) on the mesh edges."""
     e = skin.edges
@@ -281,7 +286,7 @@ def footprint_matrix(skin: TriMesh, sigma, *, chunk: int = 512) -> sp.csr_matrix
     sig = np.broadcast_to(np.asarray(sigma, np.float64), (V,))
     if not np.all(np.isfinite(sig)) or sig.min() <= 0:
         raise RigError("the tissue footprint's sigma must be positive and finite (mm).")
-    g = _edge_matrix(skin, np.maximum(_edge_lengths(skin), 1e-9))
+    g = _geodesic_graph(skin)
     rows, cols, vals = [], [], []
     for s in range(0, V, chunk):
         ids = np.arange(s, min(V, s + chunk))
@@ -329,7 +334,7 @@ def footprint_clusters(skin: TriMesh, spacing_mm: float, mirror: np.ndarray | No
     if not np.isfinite(spacing_mm) or spacing_mm <= 0:
         raise RigError(f"the footprint's cluster spacing must be positive and finite (mm), got {spacing_mm!r}.")
     V = skin.n_vertices
-    g = _edge_matrix(skin, np.maximum(_edge_lengths(skin), 1e-9))
+    g = _geodesic_graph(skin)
     covered = np.zeros(V, bool)
     centres = []
     for v in range(V):
@@ -408,11 +413,9 @@ def footprint_operator(skin: TriMesh, sigma, *, cluster_mm: float = 0.0,
     :func:`footprint_matrix`. ``cluster_mm = 0``: no clusters (the exact matrix).
     """
     V = skin.n_vertices
+    F = footprint_matrix(skin, sigma).tocsr()          # also checks sigma
     sig = np.broadcast_to(np.asarray(sigma, np.float64), (V,))
-    if not np.all(np.isfinite(sig)) or sig.min() <= 0:
-        raise RigError("the tissue footprint's sigma must be positive and finite (mm).")
     wide = sig >= CLUSTER_RATIO * cluster_mm if cluster_mm > 0 else np.zeros(V, bool)
-    F = footprint_matrix(skin, sig).tocsr()
     none = np.zeros(0, np.int64)
     if not wide.any():
         F = F.tocoo()
