@@ -596,6 +596,9 @@ def test_footprint_clusters_stay_within_their_radius_and_the_operator_matches_th
     np.testing.assert_allclose(exact.dense(len(X)), F, atol=1e-12)
     with pytest.raises(RigError, match="cluster spacing"):
         footprint_clusters(mesh, 0.0)
+    for bad in (-1.0, float("nan")):
+        with pytest.raises(RigError, match="footprint_cluster_mm"):
+            footprint_operator(mesh, sig, cluster_mm=bad)
 
 
 def test_clustered_footprint_synthesises_what_the_exact_one_does(rig):

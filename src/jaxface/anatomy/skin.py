@@ -412,6 +412,9 @@ def footprint_operator(skin: TriMesh, sigma, *, cluster_mm: float = 0.0,
     draws on several times fewer entries; the other rows are those of
     :func:`footprint_matrix`. ``cluster_mm = 0``: no clusters (the exact matrix).
     """
+    if not np.isfinite(cluster_mm) or cluster_mm < 0:
+        raise RigError(f"footprint_cluster_mm must be 0 (the exact footprint) or a positive width in mm, "
+                       f"got {cluster_mm!r}.")
     V = skin.n_vertices
     F = footprint_matrix(skin, sigma).tocsr()          # also checks sigma
     sig = np.broadcast_to(np.asarray(sigma, np.float64), (V,))
