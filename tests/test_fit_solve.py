@@ -424,8 +424,15 @@ def test_gradient_correction_gives_the_exact_rigs_gradient(round_trip):
     from jaxface.fit.solve import _data_residuals, _points_from_vertices, effective_z, gradient_correction
 
     subject, res = round_trip[:2]
-    pts, y = res.fit.points, res.fit.y
+    pts, y = res.fit.points, dict(res.fit.y)
     fn, ids = subject.forward._fn, jnp.asarray(subject.fit_ids)
+    names = list(subject.muscle_names)
+    # a correction point off the fit's minimum, as in the early outer iterations (at the
+    # minimum itself the reduced and exact gradients are both near 0): three activations up
+    z = np.array(y["z"], np.float64)
+    for n in ("zygomaticus_major_L", "frontalis_medial_R", "corrugator_R"):
+        z[names.index(n)] = min(z[names.index(n)] + 0.15, 0.95)
+    y["z"] = jnp.asarray(z)
     a0 = activations_from_z(effective_z(y, pts))
     p0 = np.asarray(jnp.concatenate([a0, jnp.asarray(y["jaw"])]), np.float64)
     M = a0.shape[0]
@@ -454,7 +461,6 @@ def test_gradient_correction_gives_the_exact_rigs_gradient(round_trip):
         r_lm = np.sqrt(pts.w_landmark)[:, None] * (x[K:] - pts.target[K:])
         return 0.5 * (np.sum(r_pt ** 2) + np.sum(r_lm ** 2))
 
-    names = list(subject.muscle_names)
     checks = [names.index(n) for n in ("zygomaticus_major_L", "frontalis_medial_R", "corrugator_R")] + [M]
     h = 1e-4
     tol = 0.02 * np.abs(g_fixed[checks]).max() + 1e-7
@@ -465,8 +471,10 @@ def test_gradient_correction_gives_the_exact_rigs_gradient(round_trip):
         fd = (exact_half_cost(p0 + e) - exact_half_cost(p0 - e)) / (2 * h)
         assert abs(g_fixed[j] - fd) < tol, (j, g_fixed[j], fd, g_reduced[j])
         off.append(abs(g_reduced[j] - fd))
-    # the reduced model's own gradient is measurably different there (measured: 30-50 %)
-    assert max(off) > 5 * tol, (off, tol)
+    # the reduced model's own gradient fails the same check by a clear margin (measured: 4.9x
+    # the tolerance, 10 % of the largest gradient, since the muscle map's wider zygomaticus
+    # major and orbicularis oculi; 30-50 % before)
+    assert max(off) > 2 * tol, (off, tol)
 
 
 def test_bound_flip_restart_leaves_a_minimum_with_a_saturated_control(monkeypatch):
