@@ -14,14 +14,22 @@ region, 9,409 vertices, with its teeth):
   default sweep counts;
 * convergence: the largest vertex difference (mm) between the default synthesis and one with
   ten times more sweeps, for a smile + jaw opening;
+* the converged synthesis: the ``converged`` preset of ``jaxface synth --sweeps``, timed
+  alternately with the default (``converged_ms_min``, ``converged_over_default``), and the
+  equilibrium gap of both (:func:`jaxface.anatomy.rig.equilibrium_gap`: how far 1,000 more
+  plain sweeps still move the result, mm);
 * with ``--sweeps 32/8,128/8,512/24/0.97,...``: the time-accuracy curve of the quasi-static
   solve, each ``muscle/skin[/rho]`` sweep count (``rho``: the skin's Chebyshev acceleration,
-  :func:`jaxface.anatomy.solver.iterate`) timed and compared (max, 99th percentile and mean vertex
-  distance, mm) with a 3,000 / 400-sweep reference solve;
-* with ``--expressions``: the same distances to a 3,000 / 400-sweep solve (max and 99th
-  percentile, mm) for each of the six emotion presets, a jaw opening (AU26) and every control
-  at 1 with the jaw at 18 degrees, at the default sweeps and at each ``--sweeps`` count: how
-  converged the solve is beyond the one benchmark expression;
+  :func:`jaxface.anatomy.solver.iterate`; or a preset name: ``converged``, ``reference``) timed
+  and compared (max, 99th percentile and mean vertex distance, mm) with a 3,000 / 400-sweep
+  plain solve from rest, and its equilibrium gap;
+* with ``--expressions``: the same distances to a 3,000 / 400-sweep solve and the equilibrium
+  gaps (max and 99th percentile, mm) for each of the six emotion presets, a jaw opening (AU26)
+  and every control at 1 with the jaw at 18 degrees, at the default sweeps and at each
+  ``--sweeps`` count: how converged the solve is beyond the one benchmark expression. Where
+  skin buckles or touches the teeth the problem has several equilibria, and an accelerated
+  solve can settle in another one than the plain sweeps from rest: there the distance to the
+  deep solve stays large while the gap is 0;
 * with ``--muscle-shell 0``: all of the above for the thesis's muscle, without the shell
   constraint (:func:`jaxface.anatomy.muscles.shell_targets`);
 * with ``--footprint-clusters 0,6`` (default ``0``): the synthesis with other cluster widths
@@ -68,7 +76,7 @@ def _expression_convergence(rig, sweeps: str, dt) -> dict:
     """Distance (mm) of the solve at each sweep count to a 3000/400-sweep solve, per expression."""
     from jaxface import facs
     from jaxface.anatomy.jaw import JawPose
-    from jaxface.anatomy.rig import synthesize
+    from jaxface.anatomy.rig import equilibrium_gap, synthesize
     from jaxface.commands.synth import parse_sweeps
 
     cases = {}
@@ -83,17 +91,25 @@ def _expression_convergence(rig, sweeps: str, dt) -> dict:
     def run(r):
         return np.asarray(jax.jit(jax.vmap(lambda a, p: synthesize(r, a, JawPose(p))))(A, P))
 
+    def gap(r):
+        return np.asarray(jax.jit(jax.vmap(lambda a, p: equilibrium_gap(r, a, JawPose(p))))(A, P))
+
     ref = run(rig.with_iterations(muscles=3000, skin=400))
     counts = [(rig.muscles.iterations, rig.skin.iterations, rig.skin.chebyshev_rho)]
     counts += [parse_sweeps(item) for item in sweeps.split(",") if item]
     out = {}
-    print(f"{'distance to 3000/400, max / p99 mm':36s}" + "".join(_label(*c).rjust(14) for c in counts))
-    cols = [np.linalg.norm(run(rig.with_iterations(muscles=m, skin=s, skin_rho=q)) - ref, axis=2)
-            for m, s, q in counts]
-    for i, name in enumerate(cases):
-        out[name] = {_label(*c): {"max_mm": float(d[i].max()), "p99_mm": float(np.percentile(d[i], 99))}
-                     for c, d in zip(counts, cols)}
-        print(f"{name:36s}" + "".join(f"{d[i].max():6.2f} / {np.percentile(d[i], 99):5.2f}" for d in cols))
+    rigs = [rig.with_iterations(muscles=m, skin=s, skin_rho=q) for m, s, q in counts]
+    cols = [np.linalg.norm(run(r) - ref, axis=2) for r in rigs]
+    gaps = [gap(r) for r in rigs]
+    for title, table, key in (("distance to 3000/400 from rest, max / p99 mm", cols, "to_deep_solve"),
+                              ("equilibrium gap (1000 more sweeps), max / p99 mm", gaps, "equilibrium_gap")):
+        print(f"{title:50s}" + "".join(_label(*c).rjust(14) for c in counts))
+        for i, name in enumerate(cases):
+            row = out.setdefault(name, {})
+            for c, d in zip(counts, table):
+                row.setdefault(_label(*c), {})[key] = {"max_mm": float(d[i].max()),
+                                                       "p99_mm": float(np.percentile(d[i], 99))}
+            print(f"{name:50s}" + "".join(f"{d[i].max():6.2f} / {np.percentile(d[i], 99):5.2f}" for d in table))
     return out
 
 
@@ -121,7 +137,8 @@ def main():
     from jaxface.anatomy.ict import load_ict_face
     from jaxface.commands.synth import parse_sweeps
     from jaxface.anatomy.jaw import JawPose
-    from jaxface.anatomy.rig import build_rig, synthesize
+    from jaxface.anatomy.rig import build_rig, equilibrium_gap, synthesize
+    from jaxface.commands.synth import SWEEP_PRESETS
     from jaxface.testing import shared_path
 
     dt = jnp.float32 if args.dtype == "float32" else jnp.float64
@@ -147,6 +164,19 @@ def main():
                                          skin=10 * rig.skin.iterations), a, jaw)
     res["convergence_mm_vs_10x_sweeps"] = float(jnp.abs(x - ref).max())
     res["motion_mm"] = float(jnp.linalg.norm(x - rig.rest, axis=1).max())
+    # the converged synthesis: the 'converged' preset of `jaxface synth --sweeps`, timed
+    # alternately with the default, and how far each still is from its equilibrium
+    m_, s_, q_ = SWEEP_PRESETS["converged"]
+    conv = rig.with_iterations(muscles=m_, skin=s_, skin_rho=q_)
+    t_def, t_conv = [], []
+    for _ in range(3):
+        t_def.append(_time(synthesize, rig, a, jaw, repeat=args.repeat)[1])
+        t_conv.append(_time(synthesize, conv, a, jaw, repeat=args.repeat)[1])
+    g_def = np.asarray(equilibrium_gap(rig, a, jaw))
+    g_conv = np.asarray(equilibrium_gap(conv, a, jaw))
+    res.update(converged_sweeps=_label(m_, s_, q_), converged_ms_min=min(t_conv),
+               converged_over_default=min(t_conv) / min(t_def), default_gap_max_mm=float(g_def.max()),
+               converged_gap_max_mm=float(g_conv.max()), converged_gap_p99_mm=float(np.percentile(g_conv, 99)))
     if args.footprint_clusters:
         # the same synthesis with other footprint cluster widths, timed alternately with the
         # default so that both see the same machine
@@ -179,10 +209,13 @@ def main():
             r = rig.with_iterations(muscles=m_, skin=s_, skin_rho=q_)
             _, mn, _ = _time(synthesize, r, a, jaw, repeat=max(3, args.repeat // 2))
             d = np.linalg.norm(np.asarray(synthesize(r, a, jaw)) - deep, axis=1)
+            g = np.asarray(equilibrium_gap(r, a, jaw))
             curve.append(dict(muscle_sweeps=m_, skin_sweeps=s_, skin_rho=q_, ms_min=mn, max_mm=float(d.max()),
-                              p99_mm=float(np.percentile(d, 99)), mean_mm=float(d.mean())))
+                              p99_mm=float(np.percentile(d, 99)), mean_mm=float(d.mean()),
+                              gap_max_mm=float(g.max()), gap_p99_mm=float(np.percentile(g, 99))))
             print(f"sweeps {_label(m_, s_, q_):<14} {mn:7.1f} ms   vs 3000/400 sweeps: max {d.max():.3f}  "
-                  f"p99 {np.percentile(d, 99):.3f}  mean {d.mean():.4f} mm", flush=True)
+                  f"p99 {np.percentile(d, 99):.3f}  mean {d.mean():.4f} mm   equilibrium gap: max "
+                  f"{g.max():.3f}  p99 {np.percentile(g, 99):.4f} mm", flush=True)
         res["time_accuracy"] = curve
     if args.expressions:
         res["expressions"] = _expression_convergence(rig, args.sweeps, dt)

@@ -3,7 +3,8 @@
 
 References: the analytic solution of a linear system (the plain iteration is Jacobi on it, so
 its spectral radius is known), plain sweeps run to convergence on the default head's skin,
-central finite differences for the derivative."""
+central finite differences for the derivative. The equilibrium gap (how far a synthesis still
+has to go) is checked against a deep solve from rest where the equilibrium is unique."""
 
 import equinox as eqx
 import jax
@@ -13,10 +14,14 @@ import pytest
 
 from jaxface import facs
 from jaxface.anatomy.jaw import JawPose
-from jaxface.anatomy.rig import build_rig, synthesize_state
+from jaxface.anatomy.rig import build_rig, equilibrium_gap, synthesize, synthesize_state
 from jaxface.anatomy.skin import solve_skin
 from jaxface.anatomy.solver import iterate
 from jaxface.head import generic_head
+
+
+#: Largest equilibrium gap (mm) the `converged` sweep preset may leave on the default head.
+GAP_CONVERGED_MM = 0.1
 
 
 def _jacobi_problem(n=40, seed=0):
@@ -142,3 +147,59 @@ def test_with_iterations_refuses_bad_sweeps_and_radii(head_rig):
     r = head_rig.with_iterations(skin=20, skin_rho=0.95)
     assert (r.skin.iterations, r.skin.chebyshev_rho) == (20, 0.95)
     assert (head_rig.skin.iterations, head_rig.skin.chebyshev_rho) == (8, 0.0)   # a copy
+
+
+def test_equilibrium_gap_is_zero_at_rest_and_matches_a_deep_solve_where_the_equilibrium_is_unique(head_rig):
+    """Jaw open 10 degrees on the default head has one equilibrium (see the test above), so
+    what the default sweeps leave to go must equal their distance to a deep solve from rest."""
+    rig = head_rig
+    zero = jnp.zeros(rig.n_controls, jnp.float32)
+    sweeps = (200, 1500)
+    rest = equilibrium_gap(rig, zero, JawPose(jnp.asarray(0.0, jnp.float32)), sweeps=sweeps)
+    assert float(rest.max()) < 1e-4                             # the rest state is an equilibrium
+    jaw = JawPose(jnp.asarray(10.0, jnp.float32))
+    x = np.asarray(synthesize(rig, zero, jaw))
+    deep = np.asarray(synthesize(rig.with_iterations(muscles=200, skin=1500), zero, jaw))
+    d = np.linalg.norm(x - deep, axis=1)
+    g = np.asarray(equilibrium_gap(rig, zero, jaw, sweeps=sweeps))
+    assert d.max() > 0.1, d.max()                               # the default sweeps leave something
+    np.testing.assert_allclose(g, d, atol=0.03 * d.max())
+
+
+def test_the_converged_preset_ends_at_an_equilibrium(head_rig):
+    """`jaxface synth --sweeps converged` where the default sweeps leave the most to go on the
+    default head (fear, happiness, surprise, and lips stretched against the teeth with the jaw
+    open): a small fraction of what the default leaves."""
+    from jaxface.commands.synth import SWEEP_PRESETS
+
+    rig = head_rig
+    m, s, q = SWEEP_PRESETS["converged"]
+    conv = rig.with_iterations(muscles=m, skin=s, skin_rho=q)
+    A, P = [], []
+    for name in ("fear", "happiness", "surprise"):
+        a, jaw, _ = facs.emotion_controls(name, rig.muscle_names)
+        A.append(np.asarray(a))
+        P.append(float(jaw.pitch_deg))
+    a, _, _ = facs.aus_to_controls({"AU20": 1.0, "AU12": 1.0, "AU26": 1.0}, rig.muscle_names)
+    A.append(np.asarray(a))
+    P.append(14.0)
+    A, P = jnp.asarray(np.stack(A), jnp.float32), jnp.asarray(P, jnp.float32)
+
+    def gaps(r):
+        one = lambda a, p: equilibrium_gap(r, a, JawPose(p), sweeps=(200, 1000)).max()  # noqa: E731
+        return np.asarray(jax.jit(jax.vmap(one))(A, P))
+
+    g_default, g_conv = gaps(rig), gaps(conv)
+    assert g_default.min() > 0.5, g_default                     # the cases are not trivial
+    assert g_conv.max() < GAP_CONVERGED_MM, (g_conv, g_default)
+    assert (g_conv < 0.05 * g_default).all(), (g_conv, g_default)
+
+
+def test_equilibrium_gap_refuses_bad_sweeps(head_rig):
+    from jaxface.errors import RigError
+
+    zero = jnp.zeros(head_rig.n_controls)
+    with pytest.raises(RigError, match="at least 1"):
+        equilibrium_gap(head_rig, zero, sweeps=(0, 10))
+    with pytest.raises(RigError, match="two integers"):
+        equilibrium_gap(head_rig, zero, sweeps=(10,))

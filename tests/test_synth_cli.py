@@ -92,8 +92,8 @@ def test_parse_sweeps_reads_the_optional_skin_acceleration():
 
     assert parse_sweeps("384/16") == (384, 16, 0.0)
     assert parse_sweeps(" 128 / 32 / 0.97 ") == (128, 32, 0.97)
-    assert parse_sweeps("Converged") == (48, 80, 0.98)
-    assert parse_sweeps("reference") == (64, 96, 0.98)
+    assert parse_sweeps("Converged") == (32, 56, 0.995)
+    assert parse_sweeps("reference") == (48, 96, 0.99)
     assert parse_sweeps("fast") == (32, 8, 0.0)
     for bad in ("1/2/3/4", "a/8", "8/8/x", "convergd"):
         with pytest.raises(RigError, match="MUSCLE/SKIN"):

@@ -39,6 +39,7 @@ _LAZY = {
     "build_rig": "rig",
     "synthesize": "rig",
     "simulate": "rig",
+    "equilibrium_gap": "rig",
 }
 
 __all__ = sorted(_LAZY)

@@ -19,14 +19,18 @@ as *one* vectorised block instead:
   satisfies the volume and the unilateral constraints closely.
 
 :func:`iterate` runs a fixed number of sweeps, plain or with Chebyshev semi-iterative
-acceleration (the skin solve's option ``SkinSystem.chebyshev_rho``). Measured on the ICT face
-(``benchmarks/bench_synth.py --sweeps 48/80/0.98,64/96/0.98 --expressions``, 2-core CPU): 48
-muscle / 80 skin sweeps with the acceleration (rho 0.98) take 280 ms and end within 0.01 mm of a
-3,000 / 400-sweep plain solve for each of the six emotions, a jaw opening and every control at
-1 (99th percentile 0.001 mm). The exception is a few lip vertices against the teeth in
-happiness and with every control at 1: they settle 0.35 and 0.57 mm from where the plain solve
-puts them. 64 / 96 sweeps take 330 ms and are no closer. The default 32 / 8 plain sweeps
-(50 ms) are 1.6 mm off at most.
+acceleration (the skin solve's option ``SkinSystem.chebyshev_rho``). Convergence is measured by
+the equilibrium gap (:func:`jaxface.anatomy.rig.equilibrium_gap`: how far 1,000 more plain
+sweeps still move the result), because where compressed skin buckles (under the brows in a
+smile, in the crease under the chin) or lips touch the teeth the problem has several
+equilibria: an accelerated solve of happiness on the ICT face settles 1.4 mm from where plain
+sweeps from rest end, under the left brow, and stays there (its gap is 0.02 mm). Measured on
+the ICT face (``benchmarks/bench_synth.py --sweeps converged,reference --expressions``,
+2-core CPU, float32): 32 muscle / 56 skin sweeps with rho 0.995 (``--sweeps converged``) take
+172 ms, 3.7x the default, and leave at most 0.022 mm to go on the benchmark smile and 0.02 mm
+on each of the six emotions and a jaw opening; with every control at 1 and the jaw at 18
+degrees a buckle under the brow still creeps, 0.34 mm in the next 1,000 sweeps (it takes
+about 1,500 to settle). The default 32 / 8 plain sweeps (47 ms) leave up to 1.6 mm.
 
 Everything is pure JAX: jit-able, vmap-able, differentiable in positions, anchor targets,
 stiffness and rest values. Units: mm (positions), inverse masses 1/g.

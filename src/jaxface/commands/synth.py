@@ -160,13 +160,14 @@ def _safe_name(s: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", s).strip("_") or "expression"
 
 
-#: Named solve depths of ``--sweeps`` (muscle sweeps, skin sweeps, skin Chebyshev rho), with
-#: their distance to a 3,000 / 400-sweep plain solve on the ICT face (the six emotions, AU26
-#: and every control at 1; ``benchmarks/bench_synth.py --expressions``, 2-core CPU).
+#: Named solve depths of ``--sweeps`` (muscle sweeps, skin sweeps, skin Chebyshev rho). Their
+#: equilibrium gap (:func:`jaxface.anatomy.rig.equilibrium_gap`, how far 1,000 more plain sweeps
+#: move the result) on the ICT face, for the six emotions, AU26 and the benchmark smile
+#: (``benchmarks/bench_synth.py --sweeps converged,reference --expressions``, 2-core CPU):
 SWEEP_PRESETS = {
-    "fast": (32, 8, 0.0),        # the default: ~50 ms, up to 1.6 mm off
-    "converged": (48, 80, 0.98),  # ~280 ms, within 0.01 mm (lip-teeth vertices up to 0.57 mm)
-    "reference": (64, 96, 0.98),  # ~330 ms, no closer than "converged" on these cases
+    "fast": (32, 8, 0.0),           # the default: 47 ms, up to 1.6 mm to go
+    "converged": (32, 56, 0.995),   # 172 ms (3.7x the default), at most 0.022 mm to go
+    "reference": (48, 96, 0.99),    # about twice "converged", under 0.001 mm to go
 }
 
 
@@ -239,13 +240,13 @@ def register(app: typer.Typer) -> None:
         pictures: bool = typer.Option(True, "--pictures/--no-pictures", help="Write a PNG per expression."),
         sweeps: Optional[str] = typer.Option(  # noqa: UP007
             None, "--sweeps", help="Quasi-static solve of the pbd backend as MUSCLE/SKIN sweeps (default "
-            "32/8, ~50 ms on the ICT face, up to 1.6 mm from the converged face). An optional third "
+            "32/8, ~50 ms on the ICT face, up to 1.6 mm short of equilibrium). An optional third "
             "number turns on the Chebyshev acceleration of the skin solve with that spectral-radius "
-            "estimate. Presets: 'converged' = 48/80/0.98 (~280 ms, within 0.01 mm of the converged "
-            "face), 'reference' = 64/96/0.98 (~330 ms, no closer); both leave a few lip vertices "
-            "at another contact with the teeth, up to 0.57 mm away (python benchmarks/bench_synth.py "
-            "--sweeps 48/80/0.98,64/96/0.98 --expressions). More plain sweeps, e.g. 3000/400, give "
-            "the plain solve's own fixed point."),
+            "estimate. Presets: 'converged' = 32/56/0.995 (~170 ms on the ICT face, within 0.03 mm "
+            "of its equilibrium), 'reference' = 48/96/0.99 (about twice as long, within 0.001 mm). Where "
+            "skin buckles or meets the teeth an accelerated solve can settle at another equilibrium "
+            "than plain sweeps from rest, e.g. 3000/400 (python benchmarks/bench_synth.py "
+            "--sweeps converged,reference --expressions)."),
         compare_backends: bool = typer.Option(
             False, "--compare-backends", help="Also build the other backend's rig on the same face and write "
             "backends_emotions.png: the six emotions, PBD next to LTW, with their distance (mm) as a heat map."),
