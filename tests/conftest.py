@@ -20,6 +20,20 @@ jax.config.update("jax_enable_x64", True)
 from jaxface.testing import shared_path  # noqa: E402
 
 
+@pytest.fixture(scope="module", autouse=True)
+def _release_compiled_programs():
+    """Free XLA's compiled programs after each test module. Every compiled CPU program keeps
+    memory mappings for its code, and the whole suite in one process compiles thousands: two
+    modules (test_pbd, test_pbd_grad) reached 20,000 mappings, and past the kernel's
+    vm.max_map_count (65,530) XLA's next compilation crashed the process with a segmentation
+    fault (seen at 87 % of the suite). Modules share few programs, so little is compiled twice."""
+    yield
+    import gc
+
+    jax.clear_caches()
+    gc.collect()
+
+
 @pytest.fixture
 def shared():
     """``shared("data", "ict", "ict_face.npz") -> Path``; skips/fails when absent."""
