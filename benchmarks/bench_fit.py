@@ -6,6 +6,13 @@ Run from the repository root (needs the shared data: ``JAXFACE_SHARED`` or ``../
 
     python benchmarks/bench_fit.py [--subjects bs900,bs901] [--no-round-trip] [--no-single]
                                    [--round-trip-ict] [--exact-steps N]
+                                   [--sweeps MUSCLE/SKIN[/RHO] | fast | converged | reference]
+                                   [--results DIR]
+
+``--sweeps`` builds the subjects' rigs with other quasi-static sweep counts than
+:func:`jaxface.anatomy.build_rig`'s 32/8 (as ``jaxface synth --sweeps``; the round trips keep
+the defaults); ``--results`` writes the JSON and the picture elsewhere than
+``benchmarks/results``.
 
 Measures (units mm, degrees, seconds):
 
@@ -142,13 +149,13 @@ def error_figure(subjects: list[tuple[str, dict]], path: Path) -> Path:
     return path
 
 
-def bench_subject(truth, subject_id: str, opt, *, single: bool) -> dict:
+def bench_subject(truth, subject_id: str, opt, *, single: bool, subject_options=None) -> dict:
     from jaxface.fit.evaluation import evaluate_against_truth
     from jaxface.fit.pipeline import fit_expressions, prepare_subject
 
     t = time.perf_counter()
     c = time.process_time()
-    S = prepare_subject(truth.scan(truth.neutral_stem(subject_id)))
+    S = prepare_subject(truth.scan(truth.neutral_stem(subject_id)), options=subject_options)
     build = {"wall_s": time.perf_counter() - t, "cpu_s": time.process_time() - c, **S.timings,
              "n_vertices": int(len(S.forward.rest)), "n_controls": S.forward.n_controls,
              "n_fit_vertices": int(len(S.fit_ids))}
@@ -290,6 +297,10 @@ def main() -> None:
     ap.add_argument("--outer-iterations", type=int, default=None, help="correspondence refreshes (default: FitOptions')")
     ap.add_argument("--no-gradient-correction", action="store_true",
                     help="fit without the exact-gradient correction of the inner solves")
+    ap.add_argument("--sweeps", default=None,
+                    help="the rig's quasi-static sweeps, MUSCLE/SKIN[/RHO] or a preset of jaxface synth "
+                         "--sweeps (default: build_rig's 32/8)")
+    ap.add_argument("--results", default=None, help="folder of the JSON and the picture (default benchmarks/results)")
     args = ap.parse_args()
     warnings.simplefilter("ignore")
     import jax
@@ -303,12 +314,22 @@ def main() -> None:
     if args.outer_iterations is not None:
         kw["outer_iterations"] = args.outer_iterations
     opt = FitOptions(**kw)
+    from jaxface.fit.pipeline import SubjectOptions
+
+    rig_kwargs = {}
+    if args.sweeps:
+        from jaxface.commands.synth import parse_sweeps
+
+        m, k, rho = parse_sweeps(args.sweeps)
+        rig_kwargs = dict(muscle_iterations=m, skin_iterations=k, skin_chebyshev_rho=rho)
+    subject_options = SubjectOptions(rig_kwargs=rig_kwargs)
     report = {"machine": _machine(), "options": {k: (list(v) if isinstance(v, tuple) else v)
-                                                 for k, v in opt.__dict__.items()}, "subjects": []}
+                                                 for k, v in opt.__dict__.items()},
+              "rig_kwargs": rig_kwargs, "subjects": []}
     error_maps = []
     for sid in [s for s in args.subjects.split(",") if s]:
         print(f"== subject {sid}", flush=True)
-        r = bench_subject(truth, sid, opt, single=not args.no_single)
+        r = bench_subject(truth, sid, opt, single=not args.no_single, subject_options=subject_options)
         error_maps.append((sid, r.pop("error_maps")))
         report["subjects"].append(r)
         print(f"build {r['build']['wall_s']:.1f} s (register {r['build']['register_s']:.1f}, rig "
@@ -365,7 +386,7 @@ def main() -> None:
                 print(f"  singular values {g}: max {sv[0]:.3g} min {sv[-1]:.3g} cond {c['condition'][g]:.3g}")
             worst = sorted(c["vif"].items(), key=lambda kv: -kv[1])[:8]
             print("  least distinguishable (VIF):", [(k, round(v, 1)) for k, v in worst])
-    out = Path(__file__).resolve().parent / "results"
+    out = Path(args.results) if args.results else Path(__file__).resolve().parent / "results"
     out.mkdir(parents=True, exist_ok=True)
     from jaxface.fit.pipeline import _jsonable
 
