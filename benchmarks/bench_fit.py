@@ -319,8 +319,12 @@ def main() -> None:
     rig_kwargs = {}
     if args.sweeps:
         from jaxface.commands.synth import parse_sweeps
+        from jaxface.errors import RigError
 
-        m, k, rho = parse_sweeps(args.sweeps)
+        try:
+            m, k, rho = parse_sweeps(args.sweeps)
+        except RigError as e:
+            ap.error(str(e))
         rig_kwargs = dict(muscle_iterations=m, skin_iterations=k, skin_chebyshev_rho=rho)
     subject_options = SubjectOptions(rig_kwargs=rig_kwargs)
     report = {"machine": _machine(), "options": {k: (list(v) if isinstance(v, tuple) else v)
