@@ -241,6 +241,46 @@ def test_au_motion_readout_matches_exact_syntheses_of_each_aus_share(round_trip)
         res.strongest_aus(3, by="size")
 
 
+def test_au_motion_sparse_terms_equal_the_dense_reduced_model(round_trip):
+    """au_motion sums only each share's own muscle terms; the same number comes from the whole
+    reduced model evaluated at the share (every muscle, the jaw at rest), and for arbitrary
+    activations (all muscles on, values between the knots and at the ends)."""
+    from jaxface.facs import au_decomposition
+    from jaxface.fit.au_motion import au_motion
+
+    subject = round_trip[0]
+    names = list(subject.muscle_names)
+    model = subject.response
+    rng = np.random.default_rng(3)
+    a = rng.uniform(0.0, 1.0, len(names))
+    a[:3] = [0.0, 1.0, 0.5]
+    mo = au_motion(model, a, np.array([7.0, 1.5, 0.8]), names)
+    aus, inten, rows = au_decomposition(a, names)
+    zero = np.zeros(len(names))
+    base = np.asarray(model.displacement(jnp.asarray(zero), jnp.zeros(3)))
+
+    def rms(share, jaw=(0.0, 0.0, 0.0)):
+        d = np.asarray(model.displacement(jnp.asarray(share), jnp.asarray(jaw, jnp.float64))) - base
+        return float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
+
+    checked = 0
+    for k, au in enumerate(aus):
+        np.testing.assert_allclose(mo[au], rms(inten[k] * rows[k]), rtol=1e-9, atol=1e-12)
+        checked += inten[k] > 0
+    assert checked >= 5
+    both = sum(inten[k] * rows[k] for k, au in enumerate(aus) if au in ("AU12L", "AU12R"))
+    np.testing.assert_allclose(mo["AU12"], rms(both), rtol=1e-9)
+    np.testing.assert_allclose(mo["AU26"], rms(zero, (7.0, 0.0, 0.0)), rtol=1e-9)
+    np.testing.assert_allclose(mo["AU30L"], rms(zero, (0.0, 1.5, 0.0)), rtol=1e-9)
+    # muscle_terms: one muscle's own displacement, less its displacement at 0
+    t = np.asarray(model.muscle_terms(jnp.asarray([1, 1, 4]), jnp.asarray([0.3, 0.0, 0.97])))
+    for row, (m, v) in enumerate([(1, 0.3), (1, 0.0), (4, 0.97)]):
+        e = zero.copy()
+        e[m] = v
+        ref = np.asarray(model.displacement(jnp.asarray(e), jnp.zeros(3))) - base
+        np.testing.assert_allclose(t[row], ref, atol=1e-10)
+
+
 def test_round_trip_conditioning_report(round_trip):
     from jaxface.fit.solve import jacobian_conditioning, make_priors
 

@@ -47,9 +47,9 @@ __all__ = [
 AU_MUSCLES: dict[str, dict[str, float]] = {
     "AU1": {"frontalis_medial": 1.0},
     "AU2": {"frontalis_lateral": 1.0},
-    "AU4": {"corrugator": 1.0, "procerus": 0.6},
+    "AU4": {"corrugator": 1.0, "depressor_supercilii": 0.8, "procerus": 0.6},
     "AU5": {"levator_palpebrae": 1.0},
-    "AU6": {"orbicularis_oculi": 0.8},
+    "AU6": {"malaris": 0.6, "orbicularis_oculi": 0.2},
     "AU7": {"orbicularis_oculi": 0.4, "orbicularis_oculi_palpebral": 0.3},
     "AU9": {"levator_labii_superioris_alaeque_nasi": 1.0, "procerus": 0.4},
     "AU10": {"levator_labii_superioris": 1.0},

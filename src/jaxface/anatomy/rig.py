@@ -41,9 +41,9 @@ JAW_FOLLOW_MM = (30.0, 100.0)
 """Default ``(full, reach)`` distances from the chin of the jaw's pull on the soft tissue,
 reference mm (:func:`jaw_follow_weights`)."""
 
-#: Default sigma of the tissue footprint, reference mm, ``(lower, upper)``: 10 mm in the lower
-#: face, narrowing to 5 mm from the eyes up to the brows
-#: (:func:`~jaxface.anatomy.skin.footprint_sigma`). A single 5 mm let the smile fold the skin
+#: Default sigma of the tissue footprint, reference mm, ``(lower, upper)``: 10 mm over the
+#: whole face (the pair blends from the eyes up to the brows,
+#: :func:`~jaxface.anatomy.skin.footprint_sigma`). A single 5 mm let the smile fold the skin
 #: over itself below the mouth corners: under the left corner the lower lip ring, pulled up
 #: 15 mm by the modiolus, was followed 2-5 mm lower by skin rising 10 mm and, 2 mm lower
 #: again, by skin rising 4 mm, and 30 anchor-target triangles (40 skin triangles) of AU12 on
@@ -51,14 +51,18 @@ reference mm (:func:`jaw_follow_weights`)."""
 #: (``benchmarks/bench_fit.py``, mean over the 20 expression scans): 0.821 mm with 5 mm,
 #: 0.787 with 7, 0.773 with 8, 0.752 with 10 (16 scans within 1 mm, was 15) and 0.757 with
 #: 14 mm, where the smiles got worse again (the last four with the eyelids' corner taper,
-#: :data:`~jaxface.anatomy.skin.LID_CORNER_TAPER`). The forehead keeps 5 mm: a wider one there,
-#: ``(5, 12)``, blurred the corrugator into its neighbours (the synthetic round trip then
-#: recovered it within 0.086 instead of 0.031). The cost: the exact footprint matrix of the
+#: :data:`~jaxface.anatomy.skin.LID_CORNER_TAPER`). The forehead had 5 mm until the brow
+#: depressor (``depressor_supercilii`` of the muscle map) came: a lowered brow drags the
+#: forehead skin down with it (the ICT brow lowerer slides it 2-3 mm 20 mm above the brow),
+#: and with 5 mm the skin bound to the still frontalis stayed put. 10 mm on the forehead too
+#: took the brow-lowering scans from 0.395 / 0.440 mm to 0.310 / 0.392 (bs900 / bs901) and the
+#: brow raisers from 0.331-0.385 to 0.313-0.348 mm; 14 mm gave 0.297 / 0.398 (measured with
+#: the fitting code of ``benchmarks/bench_fit.py``, float64). The cost: the exact footprint matrix of the
 #: ICT face has 3x the entries (2.9 M) and made a synthesis there 1.45x as long (65 against
 #: 45 ms), which :data:`FOOTPRINT_CLUSTER_MM` mostly wins back; the lower-face muscles are
 #: less distinguishable in the synthetic round trip (on the ICT face the zygomaticus major,
 #: levator anguli oris and risorius have VIFs of 19-38).
-FOOTPRINT_MM = (10.0, 5.0)
+FOOTPRINT_MM = (10.0, 10.0)
 
 #: Default width of the vertex clusters the wide rows of the tissue footprint draw on,
 #: reference mm (:func:`~jaxface.anatomy.skin.footprint_operator`): rows at least 1.5 cluster
@@ -236,7 +240,7 @@ def build_rig(skin, landmarks=None, skull: Skull | None = None, muscle_map=None,
         footprint_mm: sigma of the tissue footprint (reference mm), or a ``(lower, upper)``
             pair: ``lower`` up to the inner eye corners, ``upper`` from the inner eyebrows up,
             blended in between (:func:`~jaxface.anatomy.skin.footprint_sigma`; see
-            :data:`FOOTPRINT_MM` for why the default is ``(10, 5)``).
+            :data:`FOOTPRINT_MM` for why the default is ``(10, 10)``).
         footprint_cluster_mm: width of the vertex clusters the footprint's wide rows draw on
             (reference mm, :data:`FOOTPRINT_CLUSTER_MM`); 0 = the exact footprint.
         influence_radius: influence-map falloff in normalised geodesic distance.

@@ -40,11 +40,19 @@ __all__ = ["au_motion"]
 
 
 @eqx.filter_jit
-def _rms_motion(model, A, J):
-    """RMS displacement (mm) of each row of ``A (K, M)`` with jaw ``J (K, 3)``, less the model's
-    displacement at rest."""
-    base = model.displacement(jnp.zeros(A.shape[1], A.dtype), jnp.zeros(3, A.dtype))
-    D = jax.vmap(model.displacement)(A, J) - base[None]
+def _rms_motion(model, rows, muscles, values, J, n_rows: int):
+    """RMS displacement (mm) of ``n_rows`` shares of the activations, then of ``Q`` jaw poses.
+
+    The reduced model is additive in the muscles, so a share's displacement is the sum of its
+    muscles' own terms (:meth:`~jaxface.fit.solve.ResponseModel.muscle_terms`): the triples
+    ``(rows, muscles, values)`` ``(T,)`` list the activations of every share (the table's
+    non-zero pattern, so ``T`` is fixed per rig and this compiles once per subject).
+    ``J`` ``(Q, 3)``: jaw poses, muscles at rest. Returns ``(n_rows + Q,)``."""
+    D = jax.ops.segment_sum(model.muscle_terms(muscles, values), rows, num_segments=n_rows)
+    z = jnp.zeros(model.mus.shape[0], J.dtype)
+    base = model.displacement(z, jnp.zeros(3, J.dtype))
+    DJ = jax.vmap(lambda j: model.displacement(z, j))(J) - base[None]
+    D = jnp.concatenate([D, DJ])
     return jnp.sqrt(jnp.mean(jnp.sum(D * D, axis=-1), axis=-1))
 
 
@@ -80,9 +88,13 @@ def au_motion(response, activations, jaw, muscle_names: Sequence[str]) -> dict[s
                 ("AU30L", (0.0, max(y, 0.0), 0.0)), ("AU30R", (0.0, min(y, 0.0), 0.0)),
                 ("_open", (p, 0.0, 0.0))]
     dt = response.rest.dtype
-    A = np.concatenate([np.asarray(shares).reshape(-1, M), np.zeros((len(jaw_rows), M))])
-    J = np.concatenate([np.zeros((len(shares), 3)), np.asarray([j for _, j in jaw_rows])])
-    rms = np.asarray(_rms_motion(response, jnp.asarray(A, dt), jnp.asarray(J, dt)), np.float64)
+    S = np.asarray(shares).reshape(-1, M)
+    # every share's activations lie on its table rows' non-zero pattern (fixed per rig)
+    pattern = np.vstack([rows] + [sum(rows[aus.index(au)] for au in sided if au[:-1] == b) for b in bases])
+    r, m = np.nonzero(pattern)
+    J = np.asarray([j for _, j in jaw_rows], np.float64)
+    rms = np.asarray(_rms_motion(response, jnp.asarray(r), jnp.asarray(m), jnp.asarray(S[r, m], dt),
+                                 jnp.asarray(J, dt), len(S)), np.float64)
     out = {lab: float(v) for lab, v in zip(labels, rms[: len(labels)])}
     jaw_rms = {lab: float(v) for (lab, _), v in zip(jaw_rows, rms[len(labels):])}
     out["AU26"] = jaw_rms["AU26"]

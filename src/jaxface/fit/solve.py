@@ -394,9 +394,11 @@ class ForwardModel:
 # --------------------------------------------------------------------------------------
 # the reduced (response) model
 # --------------------------------------------------------------------------------------
-def _hermite_parts(x, knots, values, slopes):
-    """Value ``(K, 3)`` of ``sum_m H_m(x_m)`` and the derivative fields ``dH_m/dx_m``
-    ``(M, K, 3)`` (see :func:`hermite_sum`)."""
+def _hermite_basis(x, knots):
+    """Segment ``s`` ``(M,)`` of every abscissa ``x`` ``(M,)`` among the ``knots`` ``(N,)``,
+    and the weights ``w`` / their ``x``-derivatives ``dw`` ``(M, 4)`` of the values at knots
+    ``s`` and ``s + 1`` and the slopes there (cubic Hermite; linear continuation with the end
+    slope beyond the knot range)."""
     t = knots
     n = t.shape[0]
     xc = jnp.clip(x, t[0], t[-1])
@@ -412,6 +414,13 @@ def _hermite_parts(x, knots, values, slopes):
                    (u3 - u2) * h + e * above], axis=1)
     dw = jnp.stack([(6 * u2 - 6 * u) / h * inside, (-6 * u2 + 6 * u) / h * inside,
                     (3 * u2 - 4 * u + 1) * inside + below, (3 * u2 - 2 * u) * inside + above], axis=1)
+    return s, w, dw
+
+
+def _hermite_parts(x, knots, values, slopes):
+    """Value ``(K, 3)`` of ``sum_m H_m(x_m)`` and the derivative fields ``dH_m/dx_m``
+    ``(M, K, 3)`` (see :func:`hermite_sum`)."""
+    s, w, dw = _hermite_basis(x, knots)
     idx = s[:, None, None, None]
     Y0 = jnp.take_along_axis(values, idx, axis=1)[:, 0]
     Y1 = jnp.take_along_axis(values, idx + 1, axis=1)[:, 0]
@@ -538,6 +547,25 @@ class ResponseModel(eqx.Module):
     def __call__(self, a, jaw):
         """``(P, 3)`` positions, mm."""
         return self.rest + self.displacement(a, jaw)
+
+    def muscle_terms(self, muscles, values):
+        """``(T, P, 3)``: term ``t`` is muscle ``muscles[t]``'s own displacement at activation
+        ``values[t]`` less its displacement at activation 0, mm (the model is additive, so a
+        displacement is a sum of such terms; :func:`jaxface.fit.au_motion.au_motion` evaluates
+        only the few terms each AU has instead of every muscle's).
+
+        Arguments:
+            muscles: ``(T,)`` control indices; values: ``(T,)`` activations.
+        """
+        s, w, _ = _hermite_basis(values, self.levels)
+        s0, w0, _ = _hermite_basis(jnp.zeros_like(values), self.levels)
+
+        def spline(seg, wt):
+            return (wt[:, 0, None, None] * self.mus[muscles, seg] + wt[:, 1, None, None] * self.mus[muscles, seg + 1]
+                    + wt[:, 2, None, None] * self.mus_slope[muscles, seg]
+                    + wt[:, 3, None, None] * self.mus_slope[muscles, seg + 1])
+
+        return spline(s, w) - spline(s0, w0)
 
     def gather(self, ids, bary) -> "ResponseModel":
         """The model at surface points: ``ids`` ``(K, 3)`` local point ids of triangle
