@@ -149,6 +149,29 @@ def error_figure(subjects: list[tuple[str, dict]], path: Path) -> Path:
     return path
 
 
+def _jacobian_timing(fit, repeats: int = 20) -> dict:
+    """ms per Jacobian of one inner solve's data residuals (a scan's final point set), with the
+    custom forward-mode rule the fit uses and with plain forward-mode autodiff, side by side."""
+    import jax
+
+    from jaxface.fit.solve import _data_vector, _data_vector_plain
+
+    pts, y = fit.points, fit.y
+    M = pts.free.shape[0]
+    a = jax.numpy.full(M, 0.3)
+    out = {}
+    for label, fn in (("rule", _data_vector), ("plain", _data_vector_plain)):
+        jac = jax.jit(jax.jacfwd(lambda a_, j_, r_, p_: fn(a_, j_, r_, p_, True), argnums=(0, 1, 2)))
+        jax.block_until_ready(jac(a, y["jaw"], y["rigid"], pts))
+        t = time.perf_counter()
+        for _ in range(repeats):
+            jax.block_until_ready(jac(a, y["jaw"], y["rigid"], pts))
+        out[f"{label}_ms"] = 1e3 * (time.perf_counter() - t) / repeats
+    out["plain_over_rule"] = out["plain_ms"] / out["rule_ms"]
+    out["n_residuals"] = int(pts.normal.shape[0] + 3 * pts.w_landmark.shape[0])
+    return out
+
+
 def bench_subject(truth, subject_id: str, opt, *, single: bool, subject_options=None) -> dict:
     from jaxface.fit.evaluation import evaluate_against_truth
     from jaxface.fit.pipeline import fit_expressions, prepare_subject
@@ -186,6 +209,7 @@ def bench_subject(truth, subject_id: str, opt, *, single: bool, subject_options=
         w1 = time.perf_counter() - t
         timing["singles"] = {"n_scans": len(stems), "wall_s": w1, "cpu_s": time.process_time() - c,
                              "per_scan_s": w1 / len(stems), "singles_over_batch": w1 / wall}
+    timing["jacobian"] = _jacobian_timing(res[0].fit)
     out["timing"] = timing
     maps = {}
     for stem, r in zip(stems, res):
