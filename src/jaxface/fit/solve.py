@@ -818,8 +818,9 @@ def _data_jacobian(a, jaw, rigid, pts: PointSet, use_rigid: bool):
     with respect to ``[a, jaw (, rigid)]``, assembled from the reduced model's own derivative
     fields: the muscles' (:func:`_hermite_parts`, one evaluation), the jaw's (3 tangents) and
     the rigid correction's (6 tangents), then projected on the normals once. Pushing every
-    tangent through the whole residual instead (plain forward mode) cost 5 ms per Jacobian
-    on bs900's rig; this costs about a third of that."""
+    tangent through the whole residual instead (plain forward mode) takes 1.4-2.2x as long
+    (2.9 ms against 1.3-2.0 ms per Jacobian on the shared subjects' rigs, ``bench_fit.py``'s
+    ``timing.jacobian``)."""
     model = pts.model
     val, D = _hermite_parts(a, model.levels, model.mus, model.mus_slope)        # (P, 3), (M, P, 3)
     xj = model.jaw_displacement(jaw)
@@ -832,13 +833,10 @@ def _data_jacobian(a, jaw, rigid, pts: PointSet, use_rigid: bool):
         x = apply_rigid(rigid, pts.centre, x)
         dx = jnp.concatenate([jnp.einsum("ij,pjn->pin", R, dx), Jr], axis=2)
     K = pts.normal.shape[0]
-    sw = jnp.sqrt(pts.w_point)
-    r_pt = sw * jnp.sum(pts.normal * (x[:K] - pts.target[:K]), axis=-1)
-    J_pt = sw[:, None] * jnp.einsum("kd,kdn->kn", pts.normal, dx[:K])
-    sl = jnp.sqrt(pts.w_landmark)
-    r_lm = (sl[:, None] * (x[K:] - pts.target[K:])).ravel()
-    J_lm = (sl[:, None, None] * dx[K:]).reshape(-1, dx.shape[2])
-    r = jnp.concatenate([r_pt, r_lm])
+    r_pt, r_lm = _point_residuals(x, pts)
+    J_pt = jnp.sqrt(pts.w_point)[:, None] * jnp.einsum("kd,kdn->kn", pts.normal, dx[:K])
+    J_lm = (jnp.sqrt(pts.w_landmark)[:, None, None] * dx[K:]).reshape(-1, dx.shape[2])
+    r = jnp.concatenate([r_pt, r_lm.ravel()])
     J = jnp.concatenate([J_pt, J_lm])
     if pts.grad_u is not None:
         M3 = pts.grad_u.shape[0]
@@ -861,21 +859,12 @@ def _data_vector_jvp(use_rigid, primals, tangents):
     a, jaw, rigid, pts = primals
     da, djaw, drigid, dpts = tangents
     zero = lambda t: isinstance(t, SymbolicZero)  # noqa: E731
-
-    def inst(p, t):
-        """The tangent ``t`` of primal ``p``, a symbolic zero made concrete (float0 for the
-        point set's integer ids)."""
-        if not zero(t):
-            return t
-        if jnp.issubdtype(jnp.result_type(p), jnp.inexact):
-            return jnp.zeros_like(p)
-        return np.zeros(jnp.shape(p), jax.dtypes.float0)
-
-    leaves, tree = jax.tree_util.tree_flatten(primals)
-    tans = tree.flatten_up_to(tangents)
+    inst = lambda p, t: jnp.zeros_like(p) if zero(t) else t  # noqa: E731
     if not all(zero(t) for t in jax.tree_util.tree_leaves(dpts, is_leaf=zero)):
         # plain forward mode in the perturbed leaves only: the others stay constants (a zero
         # tangent pushed through sqrt(w) at a zero weight would give NaN)
+        leaves, tree = jax.tree_util.tree_flatten(primals)
+        tans = tree.flatten_up_to(tangents)
         moving = [i for i, t in enumerate(tans) if not zero(t)]
 
         def plain(*sub):
