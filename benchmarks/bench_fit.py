@@ -319,6 +319,8 @@ def main() -> None:
     ap.add_argument("--no-single", action="store_true", help="skip the single-scan timings")
     ap.add_argument("--exact-steps", type=int, default=0, help="final LM steps through the exact rig")
     ap.add_argument("--outer-iterations", type=int, default=None, help="correspondence refreshes (default: FitOptions')")
+    ap.add_argument("--restart-iterations", type=int, default=None,
+                    help="bound-flip restart iterations (default: FitOptions')")
     ap.add_argument("--no-gradient-correction", action="store_true",
                     help="fit without the exact-gradient correction of the inner solves")
     ap.add_argument("--sweeps", default=None,
@@ -337,6 +339,8 @@ def main() -> None:
     kw = dict(exact_steps=args.exact_steps, gradient_correction=not args.no_gradient_correction)
     if args.outer_iterations is not None:
         kw["outer_iterations"] = args.outer_iterations
+    if args.restart_iterations is not None:
+        kw["restart_iterations"] = args.restart_iterations
     opt = FitOptions(**kw)
     from jaxface.fit.pipeline import SubjectOptions
 

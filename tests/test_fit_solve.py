@@ -342,6 +342,54 @@ def test_round_trip_conditioning_report(round_trip):
         assert np.isfinite(cond["vif"][n])
 
 
+def test_symmetry_prior_is_quadratic_for_small_differences_and_saturates(round_trip):
+    """``lambda (a_L - a_R)^2`` while the sides barely differ, bounded by ``lambda tau^2`` and
+    flat where they clearly do (so an asymmetric expression is not pulled towards symmetry);
+    a large ``tau`` is the plain quadratic prior; the KKT gradient of the inner cost (used
+    by the active set) matches central differences of that cost."""
+    import dataclasses
+
+    import equinox as eqx
+
+    from jaxface.fit.solve import _cost_of_activations, make_priors, residuals
+
+    subject, res, _, opt = round_trip[:4]
+    names = list(subject.muscle_names)
+    pts = eqx.tree_at(lambda p: p.free, res.fit.points, jnp.ones_like(res.fit.points.free))
+    iL, iR = names.index("frontalis_medial_L"), names.index("frontalis_medial_R")
+    lam = opt.symmetry_weight
+
+    def acts(aL, aR):
+        a = np.full(len(names), 0.2)
+        a[iL], a[iR] = aL, aR
+        return a
+
+    def sym_cost(aL, aR, tau):
+        pri = make_priors(names, dataclasses.replace(opt, symmetry_scale=tau))
+        y = dict(res.fit.y, z=z_from_activations(jnp.asarray(acts(aL, aR))))
+        return float(jnp.sum(residuals(y, (pts, pri))["symmetry"] ** 2))
+
+    np.testing.assert_allclose(sym_cost(0.5, 0.2, 1e3), lam * 0.3**2, rtol=1e-6)
+    small = sym_cost(0.21, 0.2, 0.1)
+    np.testing.assert_allclose(small, lam * (0.1 * np.tanh(0.1)) ** 2, rtol=1e-6)
+    np.testing.assert_allclose(small, lam * 0.01**2, rtol=1e-2)   # quadratic within 1 %
+    np.testing.assert_allclose(sym_cost(0.2, 0.5, 0.1), lam * (0.1 * np.tanh(3.0)) ** 2, rtol=1e-9)
+    c1, c2 = sym_cost(0.6, 0.2, 0.1), sym_cost(0.9, 0.2, 0.1)
+    assert c1 < lam * 0.1**2 and c2 < lam * 0.1**2
+    assert c2 - c1 < 2e-3 * lam * 0.1**2
+    # the KKT gradient against central differences of the inner cost in the activations
+    pri = make_priors(names, opt)
+    a = jnp.asarray(acts(0.32, 0.27))
+    g = np.asarray(jax.grad(_cost_of_activations)(a, res.fit.y, pts, pri))
+    h = 1e-6
+    for i in (iL, iR):
+        fd = (_cost_of_activations(a.at[i].add(h), res.fit.y, pts, pri)
+              - _cost_of_activations(a.at[i].add(-h), res.fit.y, pts, pri)) / (2 * h)
+        np.testing.assert_allclose(g[i], float(fd), rtol=1e-5, atol=1e-10)
+    with pytest.raises(ValueError, match="symmetry_scale"):
+        make_priors(names, dataclasses.replace(opt, symmetry_scale=0.0))
+
+
 def test_outer_iterations_go_on_until_the_fit_has_converged(round_trip):
     """Two annealed outer iterations leave this fit far from converged: without extra
     iterations it must say so; with them it goes on at the final annealing, stops by itself
