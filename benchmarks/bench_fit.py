@@ -321,6 +321,8 @@ def main() -> None:
     ap.add_argument("--outer-iterations", type=int, default=None, help="correspondence refreshes (default: FitOptions')")
     ap.add_argument("--restart-iterations", type=int, default=None,
                     help="bound-flip restart iterations (default: FitOptions')")
+    ap.add_argument("--restart-when", choices=["unconverged", "saturated"], default=None,
+                    help="which fits with activations at 1 restart (default: FitOptions')")
     ap.add_argument("--no-gradient-correction", action="store_true",
                     help="fit without the exact-gradient correction of the inner solves")
     ap.add_argument("--sweeps", default=None,
@@ -341,6 +343,8 @@ def main() -> None:
         kw["outer_iterations"] = args.outer_iterations
     if args.restart_iterations is not None:
         kw["restart_iterations"] = args.restart_iterations
+    if args.restart_when is not None:
+        kw["restart_when"] = args.restart_when
     opt = FitOptions(**kw)
     from jaxface.fit.pipeline import SubjectOptions
 

@@ -165,6 +165,7 @@ def test_fit_command_defaults_are_the_librarys():
     assert defaults["max_steps"] == fo.max_steps
     assert defaults["exact_steps"] == fo.exact_steps
     assert defaults["restart_iterations"] == fo.restart_iterations
+    assert defaults["restart_when"] == fo.restart_when
     assert defaults["levels"] == so.levels
     assert defaults["pitch_knots"] == so.pitch_knots
     assert defaults["backend"] == so.backend

@@ -165,10 +165,13 @@ def register(app: typer.Typer) -> None:
         exact_steps: int = typer.Option(0, "--exact-steps", min=0,
                                         help="Final LM steps through the exact rig (slow: a rig Jacobian each)."),
         restart_iterations: int = typer.Option(
-            0, "--restart-iterations", min=0,
-            help="Bound-flip restart: a fit with activations at 1 is fitted again for this many outer "
-                 "iterations with them back near 0; the lower cost wins (0 = off; 4 escapes the "
-                 "saturated minima seen in synthetic round trips; slower)."),
+            2, "--restart-iterations", min=0,
+            help="Bound-flip restart: a fit with activations at 1 (see --restart-when) is fitted again "
+                 "for this many outer iterations with them back near 0; the lower cost wins (0 = off)."),
+        restart_when: str = typer.Option(
+            "unconverged", "--restart-when",
+            help="Which fits with activations at 1 restart: 'unconverged' (only those that did not "
+                 "converge, the trap's signature) or 'saturated' (all of them; slower)."),
         levels: int = typer.Option(4, "--levels", min=1, help="Activation knots of the rig's reduced model."),
         pitch_knots: int = typer.Option(12, "--pitch-knots", min=3, help="Jaw pitch knots of the reduced model."),
         batch_size: Optional[int] = typer.Option(  # noqa: UP007
@@ -200,7 +203,8 @@ def register(app: typer.Typer) -> None:
 
         opts = FitOptions(n_points=points, outer_iterations=outer_iterations,
                           extra_iterations=extra_iterations, max_steps=max_steps,
-                          exact_steps=exact_steps, restart_iterations=restart_iterations)
+                          exact_steps=exact_steps, restart_iterations=restart_iterations,
+                          restart_when=restart_when)
         sopts = SubjectOptions(backend=backend, levels=levels, pitch_knots=pitch_knots)
         t0 = time.perf_counter()
         prog = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),

@@ -146,6 +146,14 @@ __all__ = [
 RESTART_BOUND_TOL = 0.02
 #: The activation the bound-flip restart starts those activations from.
 RESTART_ACTIVATION = 0.05
+#: The values of :attr:`FitOptions.restart_when`.
+RESTART_WHEN = ("unconverged", "saturated")
+
+
+def _should_restart(when: str, saturated: bool, converged: bool) -> bool:
+    """Whether a run restarts (:attr:`FitOptions.restart_when`): it has activations at the
+    upper bound (``saturated``) and, for ``"unconverged"``, its fit did not converge."""
+    return saturated and (when == "saturated" or not converged)
 
 
 @dataclass(frozen=True)
@@ -201,22 +209,30 @@ class FitOptions:
             held at a bound changes (same correspondences).
         controls: fit only these controls (names); the others are held at 0. Default all.
         seed: subsampling seed.
-        restart_iterations: bound-flip restart (0 = off, the default). After the outer
-            iterations, a scan whose fit has activations at the upper bound (within
-            ``RESTART_BOUND_TOL``) is fitted again from there with those activations back at
+        restart_iterations: outer iterations of the bound-flip restart (0 = off). A run that
+            ends with activations at the upper bound (within ``RESTART_BOUND_TOL``) and
+            meets ``restart_when`` is fitted again from there with those activations back at
             ``RESTART_ACTIVATION`` and every activation free, for this many more outer
             iterations at the final annealing (then, while still converging, for up to
             ``extra_iterations`` more); the lower final cost wins
             (:attr:`PointFit.restart`). It lets a fit leave a minimum where a control
             saturated early and the active set held it: started with every activation at
-            0.9, a synthetic round trip on the default head (fat layer at 0.5 everywhere)
-            ends with depressor labii
-            inferioris L at 1 instead of 0 (cost 3.3e-3 mm^2), and with 4 restart iterations
-            at 4.4e-5 mm^2, 0.0032 mm from its scan and within 0.036 of every activation
-            (the test's case). Off by default: on the Bosphorus-style scans (model
-            mismatch) the restarts found lower scan costs but not lower truth errors (mean
-            0.897 against 0.890 mm with 2; LFAU_20 1.066 against 1.003 on bs900). Cost with
-            2, a warm batch of the 11 scans of bs900 in float64: 78.3 s against 58.4 s.
+            0.9, a synthetic round trip on the default head ends with levator anguli oris L
+            at 1 instead of 0 (cost 5.5e-3 mm^2, not converged), and with 4 restart
+            iterations at 1.2e-5 mm^2, 0.0020 mm from its scan (the test's case).
+            Restarting every saturated fit did not pay on the Bosphorus-style scans (model
+            mismatch): the restarts found lower scan costs but
+            not lower truth errors (bs900's 11 scans: mean 0.664 against 0.669 mm, LFAU_20
+            0.781 against 0.745) at 1.3-3x the time, hence ``restart_when``.
+        restart_when: which saturated runs restart. ``"unconverged"`` (default): only those
+            whose fit did not converge (still moving after ``extra_iterations``, active set
+            still changing, or the last inner solve at ``max_steps``: the statuses other than
+            ``"successful"``). A fit crawling along a valley with controls at 1 is the trap's
+            signature: the ICT face's synthetic round trip ends so, levator anguli oris at 1
+            on both sides (true 0) against the depressor anguli oris, and the restart takes it
+            to 0.0008 mm from its scan and within 0.024 of every activation; of the 20
+            Bosphorus-style scans it restarts one (bs900's LFAU_12L, whose restart loses).
+            ``"saturated"``: every run with activations at the upper bound.
         extra_iterations: at most this many more outer iterations, at the final annealing,
             for a scan still converging: in its last outer iteration the inner solve lowered
             the cost by more than ``converge_cost`` (relative) *and* the parameters moved by
@@ -262,11 +278,17 @@ class FitOptions:
     active_set_rounds: int = 3
     controls: tuple[str, ...] | None = None
     seed: int = 0
-    restart_iterations: int = 0
+    restart_iterations: int = 2
+    restart_when: str = "unconverged"
     extra_iterations: int = 6
     converge_activation: float = 5e-3
     converge_jaw: float = 0.05
     converge_cost: float = 0.01
+
+    def __post_init__(self):
+        if self.restart_when not in RESTART_WHEN:
+            raise ValueError(f"FitOptions.restart_when must be one of {RESTART_WHEN}, got "
+                             f"{self.restart_when!r}.")
 
     def anneal(self, pair: tuple[float, float], k: int) -> float:
         """Value of an annealed ``(first, last)`` setting at outer iteration ``k``
@@ -1591,7 +1613,9 @@ def fit_points(
         for i in range(R_):
             z = z_of(i)   # locked controls are held at z = 0
             hi = (np.asarray(activations_from_z(to_jax(z))) >= 1.0 - RESTART_BOUND_TOL) & ~locked
-            if not hi.any():
+            converged = (i not in unconverged and last_changes[i] == 0
+                         and reports[i][-1].result == "successful")
+            if not _should_restart(opt.restart_when, bool(hi.any()), converged):
                 continue
             j = len(runs)
             runs.append(runs[i])
