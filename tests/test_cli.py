@@ -171,6 +171,22 @@ def test_fit_command_defaults_are_the_librarys():
     assert defaults["backend"] == so.backend
 
 
+def test_fit_command_refuses_an_unknown_restart_trigger(tmp_path):
+    """``--restart-when`` takes FitOptions' values only; anything else is a usage error (exit
+    2) naming the option and the values, before any file is read."""
+    from jaxface.commands import fit
+    from jaxface.fit.solve import RESTART_WHEN
+
+    assert tuple(w.value for w in fit.RestartWhen) == RESTART_WHEN
+    app = typer.Typer()
+    fit.register(app)
+    res = CliRunner().invoke(app, ["--neutral", str(tmp_path / "N.bnt"), "--scan", str(tmp_path / "S.bnt"),
+                                   "--restart-when", "always", "--out", str(tmp_path / "out")])
+    assert res.exit_code == EXIT_USAGE, res.output
+    assert "--restart-when" in res.output and "unconverged" in res.output and "saturated" in res.output
+    assert not (tmp_path / "out").exists()
+
+
 def test_compile_cache_is_written_where_asked_and_not_when_off(tmp_path):
     """The CLI keeps XLA's compiled programs in ``--compile-cache`` / ``JAXFACE_COMPILE_CACHE``
     (default under ``$XDG_CACHE_HOME``), and writes nothing with ``off``."""

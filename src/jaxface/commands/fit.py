@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import time
 import warnings
+from enum import Enum
 from pathlib import Path
 from typing import List, Optional
 
@@ -129,6 +130,13 @@ def _write(result, out: Path, pictures: bool, on_written) -> None:
         on_written(result, files)
 
 
+class RestartWhen(str, Enum):
+    """``--restart-when``: which fits with activations at 1 restart (``FitOptions.restart_when``)."""
+
+    unconverged = "unconverged"
+    saturated = "saturated"
+
+
 def register(app: typer.Typer) -> None:
     """Add ``jaxface fit`` to ``app``."""
     from ..cli import _EPILOG, console, handle_errors
@@ -168,8 +176,8 @@ def register(app: typer.Typer) -> None:
             2, "--restart-iterations", min=0,
             help="Bound-flip restart: a fit with activations at 1 (see --restart-when) is fitted again "
                  "for this many outer iterations with them back near 0; the lower cost wins (0 = off)."),
-        restart_when: str = typer.Option(
-            "unconverged", "--restart-when",
+        restart_when: RestartWhen = typer.Option(
+            RestartWhen.unconverged, "--restart-when",
             help="Which fits with activations at 1 restart: 'unconverged' (only those that did not "
                  "converge, the trap's signature) or 'saturated' (all of them; slower)."),
         levels: int = typer.Option(4, "--levels", min=1, help="Activation knots of the rig's reduced model."),
@@ -204,7 +212,7 @@ def register(app: typer.Typer) -> None:
         opts = FitOptions(n_points=points, outer_iterations=outer_iterations,
                           extra_iterations=extra_iterations, max_steps=max_steps,
                           exact_steps=exact_steps, restart_iterations=restart_iterations,
-                          restart_when=restart_when)
+                          restart_when=RestartWhen(restart_when).value)
         sopts = SubjectOptions(backend=backend, levels=levels, pitch_knots=pitch_knots)
         t0 = time.perf_counter()
         prog = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
