@@ -1605,6 +1605,16 @@ def fit_points(
 
     unconverged = converge({i for i in range(R_) if moving[i]})
 
+    def status_of(i) -> str:
+        """Run ``i``'s status: its last inner solve's result, or ``"active_set_changing"`` /
+        ``"outer_not_converged"`` where that succeeded but the fit had not settled."""
+        status = reports[i][-1].result
+        if status == "successful" and last_changes[i] > 0:
+            return "active_set_changing"
+        if status == "successful" and i in unconverged:
+            return "outer_not_converged"
+        return status
+
     # bound-flip restarts: a run with activations at the upper bound starts again from there
     # with those activations back at RESTART_ACTIVATION and every activation free
     n_restart = max(int(opt.restart_iterations), 0)
@@ -1613,9 +1623,7 @@ def fit_points(
         for i in range(R_):
             z = z_of(i)   # locked controls are held at z = 0
             hi = (np.asarray(activations_from_z(to_jax(z))) >= 1.0 - RESTART_BOUND_TOL) & ~locked
-            converged = (i not in unconverged and last_changes[i] == 0
-                         and reports[i][-1].result == "successful")
-            if not _should_restart(opt.restart_when, bool(hi.any()), converged):
+            if not _should_restart(opt.restart_when, bool(hi.any()), status_of(i) == "successful"):
                 continue
             j = len(runs)
             runs.append(runs[i])
@@ -1659,12 +1667,7 @@ def fit_points(
         c = finals[i][0]
         ok = c.weight > 0
         d = np.abs(c.distance[ok])
-        last = reports[i][-1]
-        status = last.result
-        if status == "successful" and last_changes[i] > 0:
-            status = "active_set_changing"
-        if status == "successful" and i in unconverged:
-            status = "outer_not_converged"
+        status = status_of(i)
         restart = {}
         for j in cand:
             if parent[j] != j:
