@@ -177,7 +177,14 @@ class FitOptions:
             degrees reached the same minimum on every scan, at twice the cost.)
         rigid: fit the 6-dof rigid correction.
         landmark_weight: ``lambda_lm``: weight of the mean squared landmark error relative
-            to the mean squared point-to-plane error.
+            to the mean squared point-to-plane error. The landmarks steer the fit where the
+            surface alone cannot (the lips' mid-line, the mouth corners), but as 3-D point
+            targets they also hold the skin to where the template's landmark vertices land,
+            against the surface's evidence. On the 20 Bosphorus-style scans (batch fits as
+            in ``benchmarks/bench_fit.py``, mean error against the truth) 0.1 gave 0.669 /
+            0.648 mm (bs900 / bs901), 0.03 gave 0.626 / 0.615, 0.05 on bs900 0.649, 0.3 and
+            1.0 on bs901 0.707 and 0.795, and 0 (no landmarks) on bs901 0.699, with the
+            smiles losing most.
         sparsity_weight: ``lambda_s`` (mm^2 per unit activation).
         symmetry_weight: ``lambda_sym`` (mm^2 per unit activation^2).
         symmetry_scale: ``tau`` (unit activation, > 0): the left/right difference beyond which
@@ -263,7 +270,7 @@ class FitOptions:
     init_activation: float = 0.05
     jaw_starts: tuple[float, ...] | None = None
     rigid: bool = True
-    landmark_weight: float = 0.1
+    landmark_weight: float = 0.03
     sparsity_weight: float = 2e-4
     symmetry_weight: float = 1e-3
     symmetry_scale: float = 0.1
