@@ -323,6 +323,8 @@ def main() -> None:
                     help="bound-flip restart iterations (default: FitOptions')")
     ap.add_argument("--restart-when", choices=["unconverged", "saturated"], default=None,
                     help="which fits with activations at 1 restart (default: FitOptions')")
+    ap.add_argument("--landmark-weight", type=float, default=None,
+                    help="weight of the landmark term (default: FitOptions')")
     ap.add_argument("--no-gradient-correction", action="store_true",
                     help="fit without the exact-gradient correction of the inner solves")
     ap.add_argument("--sweeps", default=None,
@@ -345,6 +347,8 @@ def main() -> None:
         kw["restart_iterations"] = args.restart_iterations
     if args.restart_when is not None:
         kw["restart_when"] = args.restart_when
+    if args.landmark_weight is not None:
+        kw["landmark_weight"] = args.landmark_weight
     opt = FitOptions(**kw)
     from jaxface.fit.pipeline import SubjectOptions
 
