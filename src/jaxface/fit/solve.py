@@ -182,7 +182,7 @@ class FitOptions:
             targets they also hold the skin to where the template's landmark vertices land,
             against the surface's evidence. On the 20 Bosphorus-style scans (batch fits as
             in ``benchmarks/bench_fit.py``, mean error against the truth) 0.1 gave 0.669 /
-            0.648 mm (bs900 / bs901), 0.03 gave 0.626 / 0.615, 0.05 on bs900 0.649, 0.3 and
+            0.648 mm (bs900 / bs901), 0.03 0.626 / 0.615, 0.05 0.649 / 0.629, 0.3 and
             1.0 on bs901 0.707 and 0.795, and 0 (no landmarks) on bs901 0.699, with the
             smiles losing most. 0.03 lets the ICT face's synthetic round trip converge into
             a trap (levator anguli oris R at 1 against a true 0, its antagonist the depressor
