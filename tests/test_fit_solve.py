@@ -503,14 +503,17 @@ def test_batched_inner_solve_map_equals_vmap(round_trip):
     pri = make_priors(subject.muscle_names, opt)
     y = res.fit.y
     y_far = dict(y)
-    y_far["jaw"] = y["jaw"] + 3.0                        # a start that needs more steps
+    y_far["jaw"] = y["jaw"] + 3.0                        # a start that needs other steps
     Y0 = _stack([dict(y), y_far])
     P = _stack([res.fit.points, res.fit.points])
     out_map = solve_inner(Y0, P, pri, opt, mode="map")
     out_vmap = solve_inner(Y0, P, pri, opt, mode="vmap")
     steps_map, steps_vmap = out_map[2], out_vmap[2]
     np.testing.assert_array_equal(steps_map, steps_vmap)    # each member's own step count
-    assert steps_map[1] > steps_map[0]
+    # the premise: the members stop at different steps (which one needs more depends on how
+    # close the fit's own end point is to the inner solve's minimum), so map mode's per-member
+    # stopping is what is compared with vmap's
+    assert steps_map[1] != steps_map[0]
     for a, b in zip(jax.tree_util.tree_leaves(out_map[0]), jax.tree_util.tree_leaves(out_vmap[0])):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-4)
     np.testing.assert_allclose(out_map[3], out_vmap[3], rtol=1e-4, atol=1e-8)   # costs
