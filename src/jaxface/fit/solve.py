@@ -180,14 +180,10 @@ class FitOptions:
             to the mean squared point-to-plane error. The landmarks steer the fit where the
             surface alone cannot (the lips' mid-line, the mouth corners), but as 3-D point
             targets they also hold the skin to where the template's landmark vertices land,
-            against the surface's evidence. On the 20 Bosphorus-style scans (batch fits as
-            in ``benchmarks/bench_fit.py``, mean error against the truth) 0.1 gave 0.669 /
-            0.648 mm (bs900 / bs901), 0.03 0.626 / 0.615, 0.05 0.649 / 0.629, 0.3 and
-            1.0 on bs901 0.707 and 0.795, and 0 (no landmarks) on bs901 0.699, with the
-            smiles losing most. 0.03 lets the ICT face's synthetic round trip converge into
-            a trap (levator anguli oris R at 1 against a true 0, its antagonist the depressor
-            at 0.76), where 0.05 recovers every activation within 0.038 (the default head's
-            within 0.027): hence 0.05 (``bench_fit.py --landmark-weight``).
+            against the surface's evidence. 0.05 fits the Bosphorus-style scans better than
+            0.1 and keeps both synthetic round trips within 0.04, where 0.03 let the ICT
+            face's converge into a trap (the sweep: README, "Landmarks weigh less than the
+            surface"; ``bench_fit.py --landmark-weight``).
         sparsity_weight: ``lambda_s`` (mm^2 per unit activation).
         symmetry_weight: ``lambda_sym`` (mm^2 per unit activation^2).
         symmetry_scale: ``tau`` (unit activation, > 0): the left/right difference beyond which
