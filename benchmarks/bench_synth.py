@@ -37,7 +37,11 @@ region, 9,409 vertices, with its teeth):
   the largest vertex distance to the default's result;
 * batch throughput with ``jax.vmap`` (syntheses per second at batch 8 and 32);
 * a forward-mode Jacobian over all controls and the jaw pitch (``jax.jacfwd``), the operation
-  the fitter repeats.
+  the fitter repeats;
+* the reverse pass of one synthesis (``jax.vjp`` of the skin against a fixed random cotangent,
+  the fitter's gradient correction) with the rig's default per-sweep ``jax.checkpoint`` (the
+  skin's sweeps) and without any (``rig.with_iterations(checkpoint=False)``), timed
+  alternately, with their compile times and the largest difference of the two gradients.
 Timings are wall-clock on whatever machine runs it (say which when you quote them).
 """
 
@@ -113,11 +117,41 @@ def _expression_convergence(rig, sweeps: str, dt) -> dict:
     return out
 
 
+def _reverse_pass(rig, a, jaw, dt, *, repeat: int) -> dict:
+    """The reverse pass of one synthesis with and without the per-sweep checkpoint, timed
+    alternately (three rounds, the best of each)."""
+    from jaxface.anatomy.jaw import JawPose
+    from jaxface.anatomy.rig import synthesize
+
+    ct = jnp.asarray(np.random.default_rng(0).normal(size=(rig.n_vertices, 3)), dt)
+    th = jnp.concatenate([a, jaw.pitch_deg[None]])
+
+    def grad_of(r):
+        def g(th):
+            _, vjp = jax.vjp(lambda t: synthesize(r, t[:-1], JawPose(t[-1])), th)
+            return vjp(ct)[0]
+        return jax.jit(g)
+
+    on, off = grad_of(rig), grad_of(rig.with_iterations(checkpoint=False))
+    c_on, _, _ = _time(on, th, repeat=1)
+    c_off, _, _ = _time(off, th, repeat=1)
+    t_on, t_off = [], []
+    for _ in range(3):
+        t_on.append(_time(on, th, repeat=repeat)[1])
+        t_off.append(_time(off, th, repeat=repeat)[1])
+    g_on, g_off = np.asarray(on(th)), np.asarray(off(th))
+    return {"reverse_compile_s": c_on, "reverse_plain_compile_s": c_off, "reverse_ms_min": min(t_on),
+            "reverse_plain_ms_min": min(t_off), "reverse_plain_over_checkpointed": min(t_off) / min(t_on),
+            "reverse_max_gradient_difference": float(np.abs(g_on - g_off).max()),
+            "reverse_gradient_scale": float(np.abs(g_off).max())}
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--dtype", default="float32", choices=["float32", "float64"])
     ap.add_argument("--repeat", type=int, default=7)
     ap.add_argument("--no-jacobian", action="store_true")
+    ap.add_argument("--no-reverse", action="store_true", help="skip the reverse-pass timing")
     ap.add_argument("--expressions", action="store_true",
                     help="also measure the convergence on the six emotions, AU26 and all controls at 1")
     ap.add_argument("--muscle-shell", type=float, default=None,
@@ -231,6 +265,8 @@ def main():
         fj = jax.jit(jax.jacfwd(lambda th: synthesize(rig, th[:-1], JawPose(th[-1]))))
         c, mn, md = _time(fj, theta, repeat=max(2, args.repeat // 2))
         res.update(jacfwd_params=int(theta.shape[0]), jacfwd_compile_s=c, jacfwd_ms_min=mn)
+    if not args.no_reverse:
+        res.update(_reverse_pass(rig, a, jaw, dt, repeat=max(3, args.repeat // 2)))
     width = max(len(k) for k in res)
     for k, v in res.items():
         if isinstance(v, (list, dict)):

@@ -75,6 +75,29 @@ def test_chebyshev_result_ends_with_a_plain_step_and_is_differentiable():
     assert abs(g - fd) < 1e-5 * max(1.0, abs(fd))
 
 
+@pytest.mark.parametrize("rho", [0.0, 0.9])
+def test_checkpointed_sweeps_change_no_value_and_no_derivative(rho):
+    step0, _, _, f = _jacobi_problem(n=12)
+
+    def run(s, checkpoint):
+        # a non-linear step with intermediates the checkpoint recomputes on the way back
+        step = lambda u: jnp.tanh(step0(u, s * f)) + 0.1 * jnp.sin(u)  # noqa: E731
+        return iterate(step, jnp.zeros((12, 3)), 30, rho=rho, checkpoint=checkpoint)
+
+    np.testing.assert_array_equal(np.asarray(run(1.0, True)), np.asarray(run(1.0, False)))
+    loss = lambda s, c: jnp.sum(run(s, c) ** 2)  # noqa: E731
+    g_on = float(jax.grad(loss)(1.0, True))
+    g_off = float(jax.grad(loss)(1.0, False))
+    h = 1e-5
+    fd = (float(loss(1.0 + h, False)) - float(loss(1.0 - h, False))) / (2 * h)
+    assert abs(g_on - g_off) <= 1e-12 * max(1.0, abs(g_off))
+    assert abs(g_on - fd) < 1e-6 * max(1.0, abs(fd))
+    # the checkpoint is in the program: the reverse pass recomputes the sweep (a remat)
+    jaxpr = str(jax.make_jaxpr(jax.grad(loss), static_argnums=1)(1.0, True))
+    assert ("remat" in jaxpr or "checkpoint" in jaxpr)
+    assert not ("remat" in str(jax.make_jaxpr(jax.grad(loss), static_argnums=1)(1.0, False)))
+
+
 def test_bad_spectral_radius_is_refused():
     from jaxface.errors import RigError
 
@@ -147,6 +170,11 @@ def test_with_iterations_refuses_bad_sweeps_and_radii(head_rig):
     r = head_rig.with_iterations(skin=20, skin_rho=0.95)
     assert (r.skin.iterations, r.skin.chebyshev_rho) == (20, 0.95)
     assert (head_rig.skin.iterations, head_rig.skin.chebyshev_rho) == (8, 0.0)   # a copy
+    assert head_rig.skin.checkpoint and not head_rig.muscles.checkpoint    # the defaults
+    off = head_rig.with_iterations(checkpoint=False)
+    assert not off.skin.checkpoint and not off.muscles.checkpoint
+    assert head_rig.with_iterations(checkpoint=True).muscles.checkpoint
+    assert off.skin.iterations == head_rig.skin.iterations
 
 
 def test_equilibrium_gap_is_zero_at_rest_and_matches_a_deep_solve_where_the_equilibrium_is_unique(head_rig):

@@ -168,12 +168,15 @@ class Rig(eqx.Module):
         return jnp.asarray(a)
 
     def with_iterations(self, muscles: int | None = None, skin: int | None = None, *,
-                        muscle_rho: float | None = None, skin_rho: float | None = None) -> "Rig":
+                        muscle_rho: float | None = None, skin_rho: float | None = None,
+                        checkpoint: bool | None = None) -> "Rig":
         """A copy with other static sweep counts (e.g. many for a converged reference) and,
         optionally, other Chebyshev spectral-radius estimates of the two quasi-static solves
         (:func:`jaxface.anatomy.solver.iterate`; 0 = plain sweeps). ``muscle_rho`` is for
         experiments only: the muscle iteration is too non-linear for it (see
-        :func:`build_rig`, ``skin_chebyshev_rho``).
+        :func:`build_rig`, ``skin_chebyshev_rho``). ``checkpoint`` turns the per-sweep
+        ``jax.checkpoint`` of both solves on or off (by default the skin's is on, the
+        muscles' off): it only changes the reverse pass's memory and time.
 
         Raises:
             RigError: a sweep count below 1 or a spectral radius outside ``[0, 1)``.
@@ -196,6 +199,8 @@ class Rig(eqx.Module):
             sk["iterations"] = int(skin)
         if skin_rho is not None:
             sk["chebyshev_rho"] = float(skin_rho)
+        if checkpoint is not None:
+            mk["checkpoint"] = sk["checkpoint"] = bool(checkpoint)
         if mk:
             r = eqx.tree_at(lambda q: q.muscles, r, _replace_static(r.muscles, **mk))
         if sk:

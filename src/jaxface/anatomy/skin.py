@@ -556,6 +556,9 @@ class SkinSystem(eqx.Module):
         groups: fused stretch/cross, area, bending groups; volume: the skin volume group.
         upper_hull, lower_hull: hull collision groups (or None); lower_planes: rest planes.
         iterations: static sweeps of the quasi-static solve.
+        checkpoint: static; checkpoint every sweep for reverse mode
+            (:func:`jaxface.anatomy.solver.iterate`; on by default, the muscles' off: see
+            :class:`jaxface.anatomy.muscles.MuscleSystem`).
     """
 
     rest: jax.Array
@@ -596,6 +599,7 @@ class SkinSystem(eqx.Module):
     iterations: int = eqx.field(static=True, default=12)
     chebyshev_rho: float = eqx.field(static=True, default=0.0)
     fat_ratio: tuple = eqx.field(static=True, default=FAT_RATIO_RANGE)
+    checkpoint: bool = eqx.field(static=True, default=True)
 
     @property
     def n_vertices(self) -> int:
@@ -907,7 +911,7 @@ def solve_skin(sk: SkinSystem, targets, R, t, *, iterations: int | None = None, 
             x = _hull_project(sk.lower_hull, x, lower[0], lower[1])
         return x
 
-    return iterate(body, x, iters, sk.chebyshev_rho)
+    return iterate(body, x, iters, sk.chebyshev_rho, checkpoint=sk.checkpoint)
 
 
 def fused_group_static(vol):

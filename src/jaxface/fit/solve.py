@@ -103,6 +103,7 @@ from typing import Any, Callable, Sequence
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import lineax as lx
 import numpy as np
 import optimistix as optx
 
@@ -1041,8 +1042,22 @@ def _cost_of_activations(a, y, pts: PointSet, pri: Priors):
     return c
 
 
+def _linear_solver(dtype) -> lx.AbstractLinearSolver:
+    """The damped Gauss-Newton steps' linear solver: the normal equations by Cholesky in
+    float64, QR otherwise.
+
+    Each Levenberg-Marquardt step solves the tall system ``[J; sqrt(lambda) D] dy = [-r; 0]``
+    (K + 3 L + prior rows, M + 9 columns); with the damping the normal matrix is positive
+    definite and its condition number the square of the Jacobian's (at most about 1e6 on the
+    shared data, harmless in float64). On a bs900 inner solve (1,000 points) a step took 2.9
+    ms against 5.0 ms with optimistix's default QR, to the same solution. In float32 the
+    squared conditioning would cost digits, so QR stays.
+    """
+    return lx.Normal(lx.Cholesky()) if jnp.dtype(dtype) == jnp.float64 else lx.QR()
+
+
 def _solve_one(y0, pts, pri, *, max_steps, rtol, atol):
-    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=_linear_solver(y0["z"].dtype))
     sol = optx.least_squares(residuals, solver, y0, args=(pts, pri), max_steps=max_steps, throw=False)
     y = sol.value
     a = activations_from_z(effective_z(y, pts))
