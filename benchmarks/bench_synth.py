@@ -41,7 +41,10 @@ region, 9,409 vertices, with its teeth):
 * the reverse pass of one synthesis (``jax.vjp`` of the skin against a fixed random cotangent,
   the fitter's gradient correction) with the rig's default per-sweep ``jax.checkpoint`` (the
   skin's sweeps) and without any (``rig.with_iterations(checkpoint=False)``), timed
-  alternately, with their compile times and the largest difference of the two gradients.
+  alternately, with their compile times and the largest difference of the two gradients;
+  and the fit's per-iteration pair, the skin and its reverse pass, as a forward call beside a
+  jitted forward+reverse (``separate``) or as one ``jax.vjp`` whose skin and VJP leave the jit
+  (``fused``, :func:`jaxface.fit.solve.exact_skin_and_vjp`), timed alternately.
 Timings are wall-clock on whatever machine runs it (say which when you quote them).
 """
 
@@ -140,7 +143,32 @@ def _reverse_pass(rig, a, jaw, dt, *, repeat: int) -> dict:
         t_on.append(_time(on, th, repeat=repeat)[1])
         t_off.append(_time(off, th, repeat=repeat)[1])
     g_on, g_off = np.asarray(on(th)), np.asarray(off(th))
-    return {"reverse_compile_s": c_on, "reverse_plain_compile_s": c_off, "reverse_ms_min": min(t_on),
+    # the fit's outer iteration needs the skin (correspondences) and the reverse pass
+    # (gradient correction): a forward call beside a jitted forward+reverse, or one jitted
+    # jax.vjp whose skin and VJP leave the jit and a second jit that applies the VJP
+    # (jaxface.fit.solve.exact_skin_and_vjp), timed alternately
+    fwd = jax.jit(lambda t: synthesize(rig, t[:-1], JawPose(t[-1])))
+    vjp_of = jax.jit(lambda t: jax.vjp(lambda u: synthesize(rig, u[:-1], JawPose(u[-1])), t))
+    apply = jax.jit(lambda f, c: f(c)[0])
+
+    def separate(t):
+        return fwd(t), on(t)
+
+    def fused(t):
+        x, f = vjp_of(t)
+        return x, apply(f, ct)
+
+    _time(separate, th, repeat=1)
+    _time(fused, th, repeat=1)
+    t_sep, t_fus = [], []
+    for _ in range(3):
+        t_sep.append(_time(separate, th, repeat=repeat)[1])
+        t_fus.append(_time(fused, th, repeat=repeat)[1])
+    g_fus = np.asarray(fused(th)[1])
+    return {"skin_and_reverse_separate_ms_min": min(t_sep), "skin_and_reverse_fused_ms_min": min(t_fus),
+            "skin_and_reverse_separate_over_fused": min(t_sep) / min(t_fus),
+            "skin_and_reverse_fused_gradient_difference": float(np.abs(g_fus - g_on).max()),
+            "reverse_compile_s": c_on, "reverse_plain_compile_s": c_off, "reverse_ms_min": min(t_on),
             "reverse_plain_ms_min": min(t_off), "reverse_plain_over_checkpointed": min(t_off) / min(t_on),
             "reverse_max_gradient_difference": float(np.abs(g_on - g_off).max()),
             "reverse_gradient_scale": float(np.abs(g_off).max())}

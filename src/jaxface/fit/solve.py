@@ -967,25 +967,38 @@ def gradient_correction(exact_fn, fit_ids, y, pts: PointSet, use_rigid: bool):
         reverse pass is not finite.
     """
     a = activations_from_z(effective_z(y, pts))
-    p0 = jnp.concatenate([a, y["jaw"]])
-    M = a.shape[0]
+    skin, skin_vjp = jax.vjp(exact_fn, a, y["jaw"])
+    return gradient_correction_from_vjp(skin, skin_vjp, fit_ids, y, pts, use_rigid)
 
-    def data(p, x_of):
-        x = x_of(p[:M], p[M:])
+
+def exact_skin_and_vjp(exact_fn, a, jaw):
+    """The exact rig's skin ``(V, 3)`` mm at ``(a (M,), jaw (3,))`` and its VJP (a pytree:
+    it can leave a ``jit`` and be called in another): the one forward pass that both the
+    correspondences and :func:`gradient_correction_from_vjp` of an outer iteration use."""
+    return jax.vjp(exact_fn, a, jaw)
+
+
+def gradient_correction_from_vjp(skin, skin_vjp, fit_ids, y, pts: PointSet, use_rigid: bool):
+    """:func:`gradient_correction` from a forward pass already made
+    (:func:`exact_skin_and_vjp` at ``y``'s effective activations and jaw): ``skin`` ``(V, 3)``
+    mm and its VJP. Same returns."""
+    a = activations_from_z(effective_z(y, pts))
+    p0 = jnp.concatenate([a, y["jaw"]])
+
+    def data_of_points(x):
         if use_rigid:
             x = apply_rigid(y["rigid"], pts.centre, x)
         r_pt, r_lm = _point_residuals(x, pts)
         return jnp.concatenate([r_pt, r_lm.ravel()])
 
-    def exact(a_, j_):
-        return _points_from_vertices(exact_fn(a_, j_)[fit_ids], pts)
+    def reduced(p):
+        return data_of_points(pts.model(p[: a.shape[0]], p[a.shape[0]:]) + pts.defect)
 
-    def reduced(a_, j_):
-        return pts.model(a_, j_) + pts.defect
-
-    r, vjp_e = jax.vjp(lambda p: data(p, exact), p0)
-    _, vjp_r = jax.vjp(lambda p: data(p, reduced), p0)
-    g_e, = vjp_e(r)
+    r, vjp_x = jax.vjp(lambda xv: data_of_points(_points_from_vertices(xv[fit_ids], pts)), skin)
+    _, vjp_r = jax.vjp(reduced, p0)
+    ct, = vjp_x(r)
+    g_a, g_j = skin_vjp(ct)
+    g_e = jnp.concatenate([g_a, g_j])
     g_r, = vjp_r(r)
     rr = jnp.sum(r * r)
     # no correction where the reverse pass through the rig is not finite (seen once, in
@@ -995,7 +1008,8 @@ def gradient_correction(exact_fn, fit_ids, y, pts: PointSet, use_rigid: bool):
     return u, p0, jnp.where(ok, r, 0.0)
 
 
-_gradient_correction_jit = eqx.filter_jit(gradient_correction)
+_exact_vjp_jit = eqx.filter_jit(exact_skin_and_vjp)
+_gradient_correction_vjp_jit = eqx.filter_jit(gradient_correction_from_vjp)
 
 
 def model_points(y, pts: PointSet, use_rigid: bool):
@@ -1472,19 +1486,29 @@ def fit_points(
         """Run ``i``'s parameters ``z`` with the held activations at their bounds."""
         return np.where(free[i] > 0, np.asarray(ys[i]["z"]), zfix[i])
 
+    def placed(i, x):
+        """Run ``i``'s skin ``x`` (V, 3) with its rigid correction applied."""
+        if opt.rigid:
+            R, t = rigid_numpy(np.asarray(ys[i]["rigid"]), centre)
+            x = x @ R.T + t
+        return x
+
     def exact_skins(ids):
         A, J = [], []
         for i in ids:
             A.append(np.asarray(activations_from_z(to_jax(z_of(i)))))
             J.append(np.asarray(ys[i]["jaw"]))
         X = forward.many(np.stack(A), np.stack(J))
-        out = []
-        for i, x in zip(ids, X):
-            if opt.rigid:
-                R, t = rigid_numpy(np.asarray(ys[i]["rigid"]), centre)
-                x = x @ R.T + t
-            out.append(x)
-        return X, out, A
+        return X, [placed(i, x) for i, x in zip(ids, X)], A
+
+    def exact_skin_vjp(i):
+        """Run ``i``'s exact skin, placed skin, activations and the skin's VJP: one forward
+        pass serves the correspondences and the gradient correction."""
+        a = activations_from_z(to_jax(z_of(i)))
+        x, vjp = _exact_vjp_jit(forward._fn, a, ys[i]["jaw"])
+        forward.calls += 1
+        x_np = np.asarray(x, np.float64)
+        return x, x_np, placed(i, x_np), np.asarray(a), vjp
 
     def corr_for(run, skin, k):
         sc = scans[runs[run][0]]
@@ -1501,14 +1525,20 @@ def fit_points(
         """One outer iteration of the runs ``act`` (correspondences at annealing step ``k``,
         batched inner solves, active-set rounds); returns their inner costs."""
         t_it = time.perf_counter()
-        Xr, skins, A = exact_skins(act)
+        if not opt.gradient_correction:
+            Xr, skins, A = exact_skins(act)
         pts_list, corrs = [], []
         for n, i in enumerate(act):
             s = runs[i][0]
-            c = corr_for(i, skins[n], k)
+            if opt.gradient_correction:
+                # the skin's forward pass, kept for the reverse pass of the correction below
+                x_j, x_n, skin_n, a_n, vjp_n = exact_skin_vjp(i)
+            else:
+                x_n, skin_n, a_n = Xr[n], skins[n], A[n]
+            c = corr_for(i, skin_n, k)
             corrs.append(c)
-            approx = np.asarray(_eval_jit(response, to_jax(A[n]), ys[i]["jaw"]))
-            defect_v = Xr[n][fit_ids] - approx  # (P, 3): exact minus reduced model
+            approx = np.asarray(_eval_jit(response, to_jax(a_n), ys[i]["jaw"]))
+            defect_v = x_n[fit_ids] - approx  # (P, 3): exact minus reduced model
             ids = np.concatenate([c.local, lm_loc])
             bary = np.concatenate([c.bary, np.asarray(landmark_bary)])
             gm = _gather_jit(response, to_jax(ids), to_jax(bary))
@@ -1527,7 +1557,9 @@ def fit_points(
                 )
             )
             if opt.gradient_correction:
-                u, p0, r0 = _gradient_correction_jit(forward._fn, fit_ids_j, ys[i], pts_list[-1], priors.use_rigid)
+                u, p0, r0 = _gradient_correction_vjp_jit(x_j, vjp_n, fit_ids_j, ys[i], pts_list[-1],
+                                                         priors.use_rigid)
+                del vjp_n  # its residuals (one state per sweep) are freed here
                 pts_list[-1] = dataclasses.replace(pts_list[-1], grad_u=u, grad_p=p0, grad_r=r0)
         P = _stack(pts_list)
         Y0 = _stack([ys[i] for i in act])
