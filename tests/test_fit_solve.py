@@ -686,20 +686,21 @@ def test_bound_flip_restart_leaves_a_minimum_with_a_saturated_control():
 
     The default head and rig; four true controls (buccinator R at its bound, 1) and the jaw,
     fitted from a start far from the truth, every activation at 0.9. The fit ends with
-    levator anguli oris R, depressor labii inferioris L and mentalis R at 1 (all truly 0), at
-    a cost of 1.22e-2 mm^2, still crawling (not converged), so the default trigger
-    (``restart_when="unconverged"``) restarts it; fitted again from there with its saturated
-    controls back near 0 it converges at 2.07e-3 mm^2 (0.021 mm from the scan, the three
-    flipped controls at 0.027 or less, the jaw within 0.12 degrees and 0.07 mm). It converges
-    into a second, shallower minimum at the left mouth corner, where zygomaticus major L
-    (0.146, truly 0) stands in for risorius L (0, truly 0.4), both pulling the same corner:
-    a trap at the lower bound that converges, which the default trigger does not restart
-    (README, Known limits). Every other control ends within 0.1 of the truth.
-    (Measured with the inner steps' QR solve, before the Cholesky one changed the path: one
-    trapped control, levator anguli oris L, 5.5e-3 mm^2, restarted to 1.2e-5 mm^2 near the
-    truth; before the symmetry prior saturated: three, 1.5e-2 mm^2, restarted to
-    1.3e-4 to 1.6e-4. Which controls trap depends on the path, so the test asserts the
-    restart's contract, not the names.)"""
+    buccinator R and depressor labii inferioris L (truly 0) at 1, at a cost of 3.38e-3 mm^2,
+    not converged, so the default trigger (``restart_when="unconverged"``) restarts it; fitted
+    again from there with those controls back near 0 it reaches 8.85e-4 mm^2 (0.26x; 0.012 mm
+    from the scan, depressor labii inferioris L at 0, the jaw within 0.02 degrees and 0.02 mm).
+    It ends in a second, shallower minimum at the left mouth corner (the modiolus), where
+    depressor anguli oris L (0.226, truly 0) and zygomaticus major L (0.053, truly 0) stand in
+    for risorius L (0, truly 0.4), all three pulling the same corner: a trap at the lower
+    bound, which the restart does not target (README, Known limits). Every control off that
+    corner ends within 0.1 of the truth.
+    Which controls trap, and which of the corner's muscles stands in, depends on the solver's
+    numerical path, so the test asserts the restart's contract, not the names. Measured on
+    earlier paths: with separate forward and reverse passes in the gradient correction,
+    levator anguli oris R, depressor labii inferioris L and mentalis R trapped (1.22e-2 mm^2,
+    restarted to 2.07e-3, zygomaticus major L standing in); with the inner steps' QR solve,
+    levator anguli oris L alone (5.5e-3 mm^2, restarted to 1.2e-5 near the truth)."""
     from jaxface.anatomy.jaw import JawPose
     from jaxface.anatomy.rig import build_rig, synthesize
     from jaxface.fit.pipeline import SubjectOptions, fit_expressions, subject_from_rig
@@ -717,8 +718,8 @@ def test_bound_flip_restart_leaves_a_minimum_with_a_saturated_control():
     (res,) = fit_expressions(subject, [scan_skin(x, bound)],
                              options=FitOptions(restart_iterations=4, init_activation=0.9))
     r = res.fit.restart
-    # the restart ran, won by far (measured 0.17x the parent's cost) and is what is reported
-    assert r and r["kept"] and r["cost_mm2"] < 0.3 * r["parent_cost_mm2"], r
+    # the restart ran, won by far (measured 0.26x the parent's cost) and is what is reported
+    assert r and r["kept"] and r["cost_mm2"] < 0.5 * r["parent_cost_mm2"], r
     assert res.solver_dict()["restart"]["kept"]
     # the trap: controls that are truly 0 were held at 1; the kept run has left it
     trapped = [n for n in r["controls"] if truth.get(n, 0.0) == 0.0]
@@ -728,8 +729,10 @@ def test_bound_flip_restart_leaves_a_minimum_with_a_saturated_control():
     assert res.metrics.scan_to_fit["all"].mean < 0.05
     jaw = res.solver_dict()["jaw_as_fitted"]
     assert abs(jaw["pitch_deg"] - 6.0) < 0.5 and abs(jaw["protrusion_mm"] - 1.0) < 0.3, jaw
-    # the left corner's pair trades one for the other (the docstring); the rest end near the truth
-    corner = {"risorius_L", "zygomaticus_major_L"}
+    # the left corner's muscles trade one for another (the docstring), but something pulls
+    # that corner as risorius L did; the rest end near the truth
+    corner = {"risorius_L", "zygomaticus_major_L", "depressor_anguli_oris_L"}
+    assert sum(res.activations[n] for n in corner) > 0.2, {n: res.activations[n] for n in corner}
     for n in subject.muscle_names:
         if n not in corner:
             assert abs(res.activations[n] - truth.get(n, 0.0)) < 0.1, (n, res.activations[n])

@@ -224,11 +224,11 @@ class FitOptions:
             ``extra_iterations`` more); the lower final cost wins
             (:attr:`PointFit.restart`). It lets a fit leave a minimum where a control
             saturated early and the active set held it: started with every activation at
-            0.9, a synthetic round trip on the default head ends with three controls at 1
-            instead of 0 (cost 1.22e-2 mm^2, not converged), and with 4 restart iterations
-            at 2.07e-3 mm^2, 0.021 mm from its scan, those three back near 0 (the test's
-            case; it converges into a lower-bound minimum at the left mouth corner,
-            zygomaticus major standing in for risorius).
+            0.9, a synthetic round trip on the default head ends with depressor labii
+            inferioris L at 1 instead of 0 (cost 3.38e-3 mm^2, not converged), and with 4
+            restart iterations at 8.85e-4 mm^2, 0.012 mm from its scan, that control back
+            at 0 (the test's case; it ends in a lower-bound minimum at the left mouth
+            corner, depressor anguli oris standing in for risorius).
             Restarting every saturated fit did not pay on the Bosphorus-style scans (model
             mismatch): the restarts found lower scan costs but
             not lower truth errors (bs900's 11 scans: mean 0.664 against 0.669 mm, LFAU_20
