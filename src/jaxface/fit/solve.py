@@ -415,6 +415,13 @@ class ForwardModel:
         dt = jnp.result_type(float)  # float64 when x64 is enabled, else float32
         return np.asarray(self._one(jnp.asarray(a, dt), jnp.asarray(jaw, dt)))
 
+    def with_vjp(self, a, jaw):
+        """The skin ``(V, 3)`` mm (a JAX array) at ``a (M,)``, ``jaw (3,)`` and its VJP
+        (:func:`exact_skin_and_vjp`, compiled once): one synthesis, counted in ``calls``."""
+        self.calls += 1
+        dt = jnp.result_type(float)
+        return _exact_vjp_jit(self._fn, jnp.asarray(a, dt), jnp.asarray(jaw, dt))
+
     def many(self, A, J) -> np.ndarray:
         """``(B, V, 3)`` mm for activations ``(B, M)`` and jaw poses ``(B, 3)``."""
         A = np.asarray(A, np.float64).reshape(-1, self.n_controls)
@@ -1505,8 +1512,7 @@ def fit_points(
         """Run ``i``'s exact skin, placed skin, activations and the skin's VJP: one forward
         pass serves the correspondences and the gradient correction."""
         a = activations_from_z(to_jax(z_of(i)))
-        x, vjp = _exact_vjp_jit(forward._fn, a, ys[i]["jaw"])
-        forward.calls += 1
+        x, vjp = forward.with_vjp(a, ys[i]["jaw"])
         x_np = np.asarray(x, np.float64)
         return x, x_np, placed(i, x_np), np.asarray(a), vjp
 
