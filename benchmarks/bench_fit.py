@@ -7,9 +7,11 @@ Run from the repository root (needs the shared data: ``JAXFACE_SHARED`` or ``../
     python benchmarks/bench_fit.py [--subjects bs900,bs901] [--no-round-trip] [--no-single]
                                    [--round-trip-ict] [--exact-steps N]
                                    [--sweeps MUSCLE/SKIN[/RHO] | fast | converged | reference]
-                                   [--results DIR]
+                                   [--results DIR] [--no-b2] [--warm-batch]
 
-``--sweeps`` builds the subjects' rigs with other quasi-static sweep counts than
+``--no-b2`` skips baseline B2 (it reads the other subject's scans); ``--warm-batch`` fits the
+batch a second time, once its solves are compiled (``batch_warm``: on an accelerator the
+first batch compiles the vmapped inner solve for its padded size). ``--sweeps`` builds the subjects' rigs with other quasi-static sweep counts than
 :func:`jaxface.anatomy.build_rig`'s 32/8 (as ``jaxface synth --sweeps``; the round trips keep
 the defaults); ``--results`` writes the JSON and the picture elsewhere than
 ``benchmarks/results``.
@@ -63,7 +65,11 @@ CODE_AUS = {
 
 
 def _machine():
-    return {"platform": platform.platform(), "cpus": os.cpu_count(), "load_avg": list(os.getloadavg())}
+    import jax
+
+    return {"platform": platform.platform(), "cpus": os.cpu_count(), "load_avg": list(os.getloadavg()),
+            "jax": jax.__version__, "backend": jax.default_backend(),
+            "devices": [getattr(d, "device_kind", str(d)) for d in jax.devices()]}
 
 
 def _au_ranks(aus: dict, expected: list[str]) -> dict:
@@ -172,7 +178,8 @@ def _jacobian_timing(fit, repeats: int = 20) -> dict:
     return out
 
 
-def bench_subject(truth, subject_id: str, opt, *, single: bool, subject_options=None) -> dict:
+def bench_subject(truth, subject_id: str, opt, *, single: bool, subject_options=None,
+                  b2_baseline: bool = True, warm_batch: bool = False) -> dict:
     from jaxface.fit.evaluation import evaluate_against_truth
     from jaxface.fit.pipeline import fit_expressions, prepare_subject
 
@@ -185,6 +192,7 @@ def bench_subject(truth, subject_id: str, opt, *, single: bool, subject_options=
     stems = truth.stems(subject_id)
     out = {"subject": subject_id, "build": build, "scans": []}
     timing = {}
+    print(f"  built {subject_id} in {build['wall_s']:.1f} s", flush=True)
     if single:
         # one scan alone: cold (compiles the solver for a batch of one) and warm
         for label, code in (("cold", "LFAU_12"), ("warm", "LFAU_26")):
@@ -194,21 +202,24 @@ def bench_subject(truth, subject_id: str, opt, *, single: bool, subject_options=
             (r,) = fit_expressions(S, [truth.scan(stem)], options=opt)
             timing[f"single_{label}"] = {"scan": stem, "wall_s": time.perf_counter() - t,
                                          "cpu_s": time.process_time() - c, "solver_s": r.fit.seconds}
+            print(f"  single {label} ({stem}): {timing[f'single_{label}']['wall_s']:.1f} s", flush=True)
     t = time.perf_counter()
     c = time.process_time()
     res = fit_expressions(S, [truth.scan(s) for s in stems], options=opt)
     wall = time.perf_counter() - t
     timing["batch"] = {"n_scans": len(stems), "wall_s": wall, "cpu_s": time.process_time() - c,
                        "per_scan_s": wall / len(stems)}
-    if single:
-        # the same scans one at a time (warm), right after the batch: batch mode's gain per scan
+    print(f"  batch of {len(stems)}: {wall:.1f} s ({wall / len(stems):.2f} s per scan)", flush=True)
+    if warm_batch:
+        # the same batch again: what a batch costs once its solves are compiled (on an
+        # accelerator the first batch compiles the vmapped inner solve for its padded size)
         t = time.perf_counter()
         c = time.process_time()
-        for s in stems:
-            fit_expressions(S, [truth.scan(s)], options=opt)
-        w1 = time.perf_counter() - t
-        timing["singles"] = {"n_scans": len(stems), "wall_s": w1, "cpu_s": time.process_time() - c,
-                             "per_scan_s": w1 / len(stems), "singles_over_batch": w1 / wall}
+        fit_expressions(S, [truth.scan(s) for s in stems], options=opt)
+        w2 = time.perf_counter() - t
+        timing["batch_warm"] = {"n_scans": len(stems), "wall_s": w2, "cpu_s": time.process_time() - c,
+                                "per_scan_s": w2 / len(stems)}
+        print(f"  batch again (compiled): {w2:.1f} s ({w2 / len(stems):.2f} s per scan)", flush=True)
     timing["jacobian"] = _jacobian_timing(res[0].fit)
     out["timing"] = timing
     maps = {}
@@ -219,7 +230,7 @@ def bench_subject(truth, subject_id: str, opt, *, single: bool, subject_options=
         b0 = evaluate_against_truth(r.baseline_meshes["B0"], truth, stem)
         b1 = evaluate_against_truth(r.baseline_meshes["B1"], truth, stem)
         exp = CODE_AUS.get(rec.code, [])
-        b2 = _b2(truth, S, r, stem, subject_id)
+        b2 = _b2(truth, S, r, stem, subject_id) if b2_baseline else None
         row = {
             "stem": stem, "code": rec.code, "n_region": ev.n_region,
             "fit": ev.to_dict()["error"], "B0": b0.to_dict()["error"], "B1": b1.to_dict()["error"],
@@ -239,6 +250,19 @@ def bench_subject(truth, subject_id: str, opt, *, single: bool, subject_options=
             "activations": r.activations,
         }
         out["scans"].append(row)
+        print(f"  {stem}: fit {ev.mean:.3f} mm, B0 {b0.mean:.3f}, status {r.status}", flush=True)
+    if single:
+        # the same scans one at a time (warm), after the batch: batch mode's gain per scan
+        t = time.perf_counter()
+        c = time.process_time()
+        for s in stems:
+            fit_expressions(S, [truth.scan(s)], options=opt)
+        w1 = time.perf_counter() - t
+        timing["singles"] = {"n_scans": len(stems), "wall_s": w1, "cpu_s": time.process_time() - c,
+                             "per_scan_s": w1 / len(stems), "singles_over_batch": w1 / wall}
+        if warm_batch:
+            timing["singles"]["singles_over_warm_batch"] = w1 / timing["batch_warm"]["wall_s"]
+        print(f"  singles: {w1 / len(stems):.2f} s per scan, singles/batch {w1 / wall:.2f}", flush=True)
     out["error_maps"] = maps  # drawn by main(), not written to the JSON
     return out
 
@@ -317,6 +341,10 @@ def main() -> None:
     ap.add_argument("--no-round-trip", action="store_true")
     ap.add_argument("--round-trip-ict", action="store_true", help="also run the round trip on the ICT face")
     ap.add_argument("--no-single", action="store_true", help="skip the single-scan timings")
+    ap.add_argument("--warm-batch", action="store_true",
+                    help="fit the batch a second time, compiled (batch_warm, singles_over_warm_batch)")
+    ap.add_argument("--no-b2", action="store_true",
+                    help="skip baseline B2 (it needs the other subject's scans of the same code)")
     ap.add_argument("--exact-steps", type=int, default=0, help="final LM steps through the exact rig")
     ap.add_argument("--outer-iterations", type=int, default=None, help="correspondence refreshes (default: FitOptions')")
     ap.add_argument("--restart-iterations", type=int, default=None,
@@ -369,7 +397,8 @@ def main() -> None:
     error_maps = []
     for sid in [s for s in args.subjects.split(",") if s]:
         print(f"== subject {sid}", flush=True)
-        r = bench_subject(truth, sid, opt, single=not args.no_single, subject_options=subject_options)
+        r = bench_subject(truth, sid, opt, single=not args.no_single, subject_options=subject_options,
+                          b2_baseline=not args.no_b2, warm_batch=args.warm_batch)
         error_maps.append((sid, r.pop("error_maps")))
         report["subjects"].append(r)
         print(f"build {r['build']['wall_s']:.1f} s (register {r['build']['register_s']:.1f}, rig "

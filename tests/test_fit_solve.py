@@ -517,8 +517,26 @@ def test_batched_inner_solve_map_equals_vmap(round_trip):
     for a, b in zip(jax.tree_util.tree_leaves(out_map[0]), jax.tree_util.tree_leaves(out_vmap[0])):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-4)
     np.testing.assert_allclose(out_map[3], out_vmap[3], rtol=1e-4, atol=1e-8)   # costs
+    # padded to 8 members (the accelerator's fixed batch shape): the padding is cut from the
+    # results and the two real members' solves are those of the unpadded batch
+    out_pad = solve_inner(Y0, P, pri, opt, mode="vmap", pad_to=5)
+    assert out_pad[1].shape == (2,) and out_pad[5].shape == out_vmap[5].shape
+    np.testing.assert_array_equal(out_pad[2], steps_vmap)
+    for a, b in zip(jax.tree_util.tree_leaves(out_pad[0]), jax.tree_util.tree_leaves(out_vmap[0])):
+        assert a.shape == b.shape
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-9)
+    np.testing.assert_allclose(out_pad[3], out_vmap[3], rtol=1e-9, atol=1e-12)
     with pytest.raises(Exception, match="map"):
         solve_inner(Y0, P, pri, opt, mode="pmap")
+
+
+def test_padded_batch_size_is_the_next_power_of_two():
+    from jaxface.errors import FitError
+    from jaxface.fit.solve import padded_batch_size
+
+    assert [padded_batch_size(n) for n in (1, 2, 3, 4, 5, 8, 11, 16, 17)] == [1, 2, 4, 4, 8, 8, 16, 16, 32]
+    with pytest.raises(FitError, match="at least one"):
+        padded_batch_size(0)
 
 
 def test_inner_solve_by_normal_equations_equals_qr(round_trip):

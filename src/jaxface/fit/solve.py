@@ -1108,7 +1108,33 @@ def _item(tree, b: int):
     return jax.tree_util.tree_map(lambda x: x[b] if eqx.is_array(x) else x, tree)
 
 
-def solve_inner(y0, points: PointSet, priors: Priors, options: FitOptions, *, mode: str | None = None):
+def padded_batch_size(n: int) -> int:
+    """The batch size a ``"vmap"`` inner solve of ``n`` members is compiled for: the next
+    power of two (1, 2, 4, 8, 16, ...), so the shrinking subsets of a fit and batches of other
+    sizes reuse a few compiled solves instead of compiling one per size."""
+    n = int(n)
+    if n < 1:
+        raise FitError(f"padded_batch_size needs a batch of at least one member; got {n}.")
+    return 1 << (n - 1).bit_length()
+
+
+def _pad_leading(tree, n: int, size: int):
+    """Every array leaf of ``tree`` padded from ``n`` to ``size`` rows along its leading axis
+    by repeating its last row (padding members repeat a real member's solve, so they cannot
+    fail where it does not and never take more steps than the batch's slowest member)."""
+    if size == n:
+        return tree
+
+    def pad(x):
+        if not eqx.is_array(x):
+            return x
+        return jnp.concatenate([x, jnp.repeat(x[n - 1 : n], size - n, axis=0)], axis=0)
+
+    return jax.tree_util.tree_map(pad, tree)
+
+
+def solve_inner(y0, points: PointSet, priors: Priors, options: FitOptions, *, mode: str | None = None,
+                pad_to: int | None = None):
     """Batched Levenberg-Marquardt solves over the leading axis of ``y0`` and ``points``,
     ``throw=False``.
 
@@ -1116,12 +1142,17 @@ def solve_inner(y0, points: PointSet, priors: Priors, options: FitOptions, *, mo
     solve, dispatched one after another without waiting: a batch of any size, and the
     subsets that :func:`fit_points` goes on with, cost no new compilation (on the 2-core CPU
     a ``lax.map`` over the batch ran at the same speed per scan but compiled once per batch
-    size). ``"vmap"`` compiles one parallel solve per batch size (accelerators).
+    size). ``"vmap"`` (accelerators) pads the batch to a power of two
+    (:func:`padded_batch_size`) and compiles one parallel solve per padded size.
 
     Args:
         y0, points: batched parameters and residual data; priors: shared.
         options: :class:`FitOptions` (``max_steps``, ``rtol``, ``atol``).
         mode: ``"map"`` or ``"vmap"``; default :func:`batch_mode`.
+        pad_to: ``"vmap"`` only: pad the batch to at least this many members, rounded up by
+            :func:`padded_batch_size` (default: ``padded_batch_size`` of the batch). The
+            padding repeats the last member and is cut from the results, so one compiled
+            solve serves every batch size up to it. ``"map"`` ignores it.
 
     Returns:
         ``(y, result (B,) int, steps (B,), cost (B,), cost0 (B,), a (B, M), grad_a (B, M))``;
@@ -1139,9 +1170,12 @@ def solve_inner(y0, points: PointSet, priors: Priors, options: FitOptions, *, mo
         y = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *[o[0] for o in outs])
         rest = [np.stack([np.asarray(o[k]) for o in outs]) for k in range(1, 7)]
         return (y, *rest)
-    y, res, steps, cost, cost0, a, g = fn(y0, points, priors)
-    return (y, np.asarray(res), np.asarray(steps), np.asarray(cost), np.asarray(cost0), np.asarray(a),
-            np.asarray(g))
+    n = int(np.shape(jax.tree_util.tree_leaves(y0)[0])[0])
+    size = padded_batch_size(max(n, int(pad_to or 0)))
+    y, res, steps, cost, cost0, a, g = fn(_pad_leading(y0, n, size), _pad_leading(points, n, size), priors)
+    if size != n:
+        y = jax.tree_util.tree_map(lambda x: x[:n], y)
+    return (y, *(np.asarray(v)[:n] for v in (res, steps, cost, cost0, a, g)))
 
 
 def result_name(code: int) -> str:
@@ -1580,7 +1614,9 @@ def fit_points(
             # same correspondences; re-solve while the active set of the bounds changes. A run
             # whose set settled keeps that solve: it is not re-solved with the others, so a
             # scan's fit does not depend on the batch it is in
-            Y, res, steps, cost, cost0, acts, grads = solve_inner(Y0, P, priors, opt)
+            # on an accelerator every solve of this fit is padded to the batch size of all its
+            # runs, so the subsets that go on compile nothing new
+            Y, res, steps, cost, cost0, acts, grads = solve_inner(Y0, P, priors, opt, pad_to=len(runs))
             cost0_first = cost0 if cost0_first is None else cost0_first
             flat = np.concatenate([np.asarray(v).reshape(n_act, -1) for v in jax.tree_util.tree_leaves(Y)], axis=1)
             for n, i in enumerate(act):
