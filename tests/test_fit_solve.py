@@ -530,6 +530,29 @@ def test_batched_inner_solve_map_equals_vmap(round_trip):
         solve_inner(Y0, P, pri, opt, mode="pmap")
 
 
+def test_host_stack_and_index_equal_jax_stack_and_slicing():
+    """The fit's batches are stacked and sliced on the host (no eager XLA op per leaf): the
+    same values, dtypes and shapes as ``jnp.stack`` / ``x[i]``, as JAX arrays."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxface.fit.solve import _index, _item, _stack
+
+    rng = np.random.default_rng(3)
+    trees = [{"z": jnp.asarray(rng.normal(size=5)), "ids": jnp.asarray(rng.integers(0, 9, (4, 3))),
+              "free": jnp.asarray(rng.random(5) > 0.5)} for _ in range(3)]
+    got = _stack(trees)
+    want = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *trees)
+    for g, w in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want)):
+        assert isinstance(g, jax.Array) and g.dtype == w.dtype and g.shape == w.shape
+        np.testing.assert_array_equal(np.asarray(g), np.asarray(w))
+    for i in range(3):
+        for one in (_index(got, i), _item(got, i)):
+            for g, w in zip(jax.tree_util.tree_leaves(one), jax.tree_util.tree_leaves(trees[i])):
+                assert isinstance(g, jax.Array) and g.dtype == w.dtype
+                np.testing.assert_array_equal(np.asarray(g), np.asarray(w))
+
+
 def test_padded_batch_size_is_the_next_power_of_two():
     from jaxface.errors import FitError
     from jaxface.fit.solve import padded_batch_size
