@@ -76,7 +76,9 @@ Levenberg-Marquardt solve runs through the exact rig's own forward-mode Jacobian
 scans (and starts) share their residual layout (padded, zero-weight residuals). On the CPU
 one compiled single-scan solve is called per scan, dispatched without waiting, each
 stopping at its own convergence, so no batch size compiles anything new; on an accelerator
-one ``jax.vmap`` solves them all in parallel. (A ``vmap`` of a while loop runs every member
+one ``jax.vmap`` solves them all in parallel, padded to a power of two
+(:func:`padded_batch_size`) and, within one fit, to the size of all its runs, so the
+subsets that go on compile nothing new. (A ``vmap`` of a while loop runs every member
 for the largest number of steps in the batch; on the 2-core CPU a batch of 11 Bosphorus scans
 took 5.5 s per scan with ``vmap`` and 3.3 s one after the other, same fits.)
 
