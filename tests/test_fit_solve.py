@@ -536,7 +536,7 @@ def test_host_stack_and_index_equal_jax_stack_and_slicing():
     import jax
     import jax.numpy as jnp
 
-    from jaxface.fit.solve import _index, _item, _stack
+    from jaxface.fit.solve import _index, _stack
 
     rng = np.random.default_rng(3)
     trees = [{"z": jnp.asarray(rng.normal(size=5)), "ids": jnp.asarray(rng.integers(0, 9, (4, 3))),
@@ -547,10 +547,9 @@ def test_host_stack_and_index_equal_jax_stack_and_slicing():
         assert isinstance(g, jax.Array) and g.dtype == w.dtype and g.shape == w.shape
         np.testing.assert_array_equal(np.asarray(g), np.asarray(w))
     for i in range(3):
-        for one in (_index(got, i), _item(got, i)):
-            for g, w in zip(jax.tree_util.tree_leaves(one), jax.tree_util.tree_leaves(trees[i])):
-                assert isinstance(g, jax.Array) and g.dtype == w.dtype
-                np.testing.assert_array_equal(np.asarray(g), np.asarray(w))
+        for g, w in zip(jax.tree_util.tree_leaves(_index(got, i)), jax.tree_util.tree_leaves(trees[i])):
+            assert isinstance(g, jax.Array) and g.dtype == w.dtype
+            np.testing.assert_array_equal(np.asarray(g), np.asarray(w))
 
 
 def test_padded_batch_size_is_the_next_power_of_two():

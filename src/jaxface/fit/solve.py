@@ -1105,12 +1105,6 @@ def _batched_solver(max_steps: int, rtol: float, atol: float, mode: str = "vmap"
     return eqx.filter_jit(jax.vmap(fn, in_axes=(0, 0, None)))
 
 
-def _item(tree, b: int):
-    """Entry ``b`` of the leading axis of every array leaf of ``tree`` (sliced on the host:
-    an eager ``x[b]`` dispatches and, for each new shape, compiles one XLA op per leaf)."""
-    return jax.tree_util.tree_map(lambda x: to_jax(np.asarray(x)[b]) if eqx.is_array(x) else x, tree)
-
-
 def padded_batch_size(n: int) -> int:
     """The batch size a ``"vmap"`` inner solve of ``n`` members is compiled for: the next
     power of two (1, 2, 4, 8, 16, ...), so the shrinking subsets of a fit and batches of other
@@ -1170,7 +1164,7 @@ def solve_inner(y0, points: PointSet, priors: Priors, options: FitOptions, *, mo
     fn = _batched_solver(int(options.max_steps), float(options.rtol), float(options.atol), mode)
     if mode == "map":
         n = int(np.shape(jax.tree_util.tree_leaves(y0)[0])[0])
-        outs = [fn(_item(y0, b), _item(points, b), priors) for b in range(n)]
+        outs = [fn(_index(y0, b), _index(points, b), priors) for b in range(n)]
         y = _stack([o[0] for o in outs])
         rest = [np.stack([np.asarray(o[k]) for o in outs]) for k in range(1, 7)]
         return (y, *rest)
@@ -1413,8 +1407,9 @@ def _stack(trees):
 
 
 def _index(tree, i):
-    """Entry ``i`` of the leading axis of every leaf of ``tree`` (on the host, see :func:`_stack`)."""
-    return jax.tree_util.tree_map(lambda x: to_jax(np.asarray(x)[i]), tree)
+    """Entry ``i`` of the leading axis of every array leaf of ``tree`` (on the host, see
+    :func:`_stack`)."""
+    return jax.tree_util.tree_map(lambda x: to_jax(np.asarray(x)[i]) if eqx.is_array(x) else x, tree)
 
 
 def _y0(M: int, options: FitOptions, pitch: float):
