@@ -1401,8 +1401,8 @@ class PointFit:
 def _stack(trees):
     """The pytrees ``trees`` stacked along a new leading axis. Stacked and sliced on the host
     (:func:`_index` too): the same bits as ``jnp.stack`` / ``x[i]``, without the eager XLA
-    dispatch (and a compilation per new shape) for every leaf, which took about a tenth of a
-    warm batch fit's time on the 2-core CPU."""
+    dispatch (and a compilation per new shape) for every leaf, which took up to a tenth of a
+    warm batch fit's time on the 2-core CPU (README, "How it works")."""
     return jax.tree_util.tree_map(lambda *xs: to_jax(np.stack([np.asarray(x) for x in xs])), *trees)
 
 
