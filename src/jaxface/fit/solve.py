@@ -1162,17 +1162,16 @@ def solve_inner(y0, points: PointSet, priors: Priors, options: FitOptions, *, mo
     if mode not in ("map", "vmap"):
         raise FitError(f"solve_inner mode {mode!r}: use 'map' or 'vmap'.")
     fn = _batched_solver(int(options.max_steps), float(options.rtol), float(options.atol), mode)
+    n = int(np.shape(jax.tree_util.tree_leaves(y0)[0])[0])
     if mode == "map":
-        n = int(np.shape(jax.tree_util.tree_leaves(y0)[0])[0])
         outs = [fn(_index(y0, b), _index(points, b), priors) for b in range(n)]
         y = _stack([o[0] for o in outs])
         rest = [np.stack([np.asarray(o[k]) for o in outs]) for k in range(1, 7)]
         return (y, *rest)
-    n = int(np.shape(jax.tree_util.tree_leaves(y0)[0])[0])
     size = padded_batch_size(max(n, int(pad_to or 0)))
     y, res, steps, cost, cost0, a, g = fn(_pad_leading(y0, n, size), _pad_leading(points, n, size), priors)
     if size != n:
-        y = jax.tree_util.tree_map(lambda x: to_jax(np.asarray(x)[:n]), y)
+        y = _index(y, slice(0, n))
     return (y, *(np.asarray(v)[:n] for v in (res, steps, cost, cost0, a, g)))
 
 
@@ -1407,8 +1406,8 @@ def _stack(trees):
 
 
 def _index(tree, i):
-    """Entry ``i`` of the leading axis of every array leaf of ``tree`` (on the host, see
-    :func:`_stack`)."""
+    """Entry (or slice) ``i`` of the leading axis of every array leaf of ``tree`` (on the
+    host, see :func:`_stack`)."""
     return jax.tree_util.tree_map(lambda x: to_jax(np.asarray(x)[i]) if eqx.is_array(x) else x, tree)
 
 
