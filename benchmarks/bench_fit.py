@@ -8,6 +8,7 @@ Run from the repository root (needs the shared data: ``JAXFACE_SHARED`` or ``../
                                    [--round-trip-ict] [--exact-steps N]
                                    [--sweeps MUSCLE/SKIN[/RHO] | fast | converged | reference]
                                    [--results DIR] [--no-b2] [--warm-batch] [--truth-as-scan]
+                                   [--motion-fraction F]
 
 ``--truth-as-scan`` fits the face skin of each expression's exact truth mesh (noise-free and
 hole-free, with the scan's landmarks) instead of its range scan: how close the model itself
@@ -374,6 +375,8 @@ def main() -> None:
                     help="which fits with activations at 1 restart (default: FitOptions')")
     ap.add_argument("--landmark-weight", type=float, default=None,
                     help="weight of the landmark term (default: FitOptions')")
+    ap.add_argument("--motion-fraction", type=float, default=None,
+                    help="share of the scan points drawn from the expression's moving region (default: FitOptions')")
     ap.add_argument("--no-gradient-correction", action="store_true",
                     help="fit without the exact-gradient correction of the inner solves")
     ap.add_argument("--sweeps", default=None,
@@ -398,6 +401,8 @@ def main() -> None:
         kw["restart_when"] = args.restart_when
     if args.landmark_weight is not None:
         kw["landmark_weight"] = args.landmark_weight
+    if args.motion_fraction is not None:
+        kw["motion_fraction"] = args.motion_fraction
     opt = FitOptions(**kw)
     from jaxface.fit.pipeline import SubjectOptions
 

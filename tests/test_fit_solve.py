@@ -756,7 +756,7 @@ def test_bound_flip_restart_leaves_a_minimum_with_a_saturated_control():
     subject = subject_from_rig(rig, scan_skin(np.asarray(rig.rest), bound), face_mask=head.face_mask,
                                options=SubjectOptions())
     (res,) = fit_expressions(subject, [scan_skin(x, bound)],
-                             options=FitOptions(restart_iterations=4, init_activation=0.9))
+                             options=FitOptions(restart_iterations=4, init_activation=0.9, motion_fraction=0.0))
     r = res.fit.restart
     # the restart ran, won by far (measured 0.26x the parent's cost) and is what is reported
     assert r and r["kept"] and r["cost_mm2"] < 0.5 * r["parent_cost_mm2"], r
@@ -799,3 +799,55 @@ def test_forward_many_equals_single_syntheses_for_any_batch_size(round_trip):
     assert np.abs(ref[2] - ref[0]).max() > 1.0  # the rows differ: not one pose repeated
     with pytest.raises(FitError, match="jaw pose"):
         fwd.many(A, J[:2])
+
+
+def test_scan_points_are_drawn_from_the_moving_region_as_the_options_say(round_trip):
+    """``FitOptions.motion_fraction``: that share of the fit's scan points lies farther than
+    ``motion_threshold_mm`` from the registered neutral (distances measured here again, with
+    the exact surface index), the rest is an even draw, and 0 is the even draw alone."""
+    from jaxface.fit.align import align_scans
+    from jaxface.fit.pipeline import scan_fit_inputs
+
+    subject, expr = round_trip[0], round_trip[4]
+    T = align_scans(expr, subject.neutral, fixed_index=subject.neutral_index).transform
+    n, thr = 600, 0.3
+
+    def far(inp):
+        p = inp["points"][inp["valid"]]
+        return int(np.sum(subject.face_index.query(p).distances > thr))
+
+    even = scan_fit_inputs(subject, expr, T, n, motion_fraction=0.0, motion_threshold_mm=thr)
+    assert even["n_moving_drawn"] == 0 and even["valid"].sum() == n
+    share0 = far(even) / n
+    # the smile moves part of the face: the even draw holds some moving points, not most
+    assert 0.05 < share0 < 0.6, share0
+    assert even["n_moving"] > 0.8 * n
+    for f in (0.5, 0.8):
+        inp = scan_fit_inputs(subject, expr, T, n, motion_fraction=f, motion_threshold_mm=thr)
+        assert inp["n_moving_drawn"] == round(f * n) and inp["valid"].sum() == n
+        # the drawn share plus the even draw's share of the rest
+        assert far(inp) >= round(f * n), (f, far(inp))
+        assert far(inp) > far(even)
+        # seeded: the same draw again; another seed, another draw
+        again = scan_fit_inputs(subject, expr, T, n, motion_fraction=f, motion_threshold_mm=thr)
+        np.testing.assert_array_equal(again["points"], inp["points"])
+        other = scan_fit_inputs(subject, expr, T, n, seed=1, motion_fraction=f, motion_threshold_mm=thr)
+        assert not np.array_equal(other["points"], inp["points"])
+    # more than there are: every moving point, and the rest from the others
+    # (the smile moves over 2000 of the scan's points beyond 2 mm: a higher threshold leaves fewer)
+    for high in (4.0, 6.0, 8.0, 12.0):
+        few = scan_fit_inputs(subject, expr, T, n, motion_fraction=1.0, motion_threshold_mm=high)
+        if 0 < few["n_moving"] < n:
+            break
+    assert 0 < few["n_moving_drawn"] == few["n_moving"] < n and few["valid"].sum() == n, few["n_moving"]
+    assert far(few) > few["n_moving"]  # the rest holds moving points beyond 0.3 mm too
+
+
+def test_motion_sampling_options_are_checked():
+    assert FitOptions().motion_fraction == 0.5 and FitOptions().motion_threshold_mm == 0.3
+    with pytest.raises(ValueError, match="motion_fraction"):
+        FitOptions(motion_fraction=1.5)
+    with pytest.raises(ValueError, match="motion_threshold_mm"):
+        FitOptions(motion_threshold_mm=-1.0)
+    with pytest.raises(ValueError, match="motion_threshold_mm"):
+        FitOptions(motion_threshold_mm=float("nan"))

@@ -324,13 +324,16 @@ def subject_from_rig(
 # one expression scan
 # --------------------------------------------------------------------------------------
 def scan_fit_inputs(subject: Subject, scan, transform, n_points: int, *, seed: int = 0,
-                    preselect_mm: float = 20.0) -> dict:
+                    preselect_mm: float = 20.0, motion_fraction: float = 0.0,
+                    motion_threshold_mm: float = 0.3) -> dict:
     """The fitter's view of one scan, in the neutral frame (mm).
 
     Scan vertices (off the scan border, with a normal) are moved by ``transform`` (scan ->
     neutral), kept when they lie within ``preselect_mm`` of the registered neutral's face
     region (and not beyond its border by more than 3 mm), and subsampled (seeded) to
-    ``n_points`` (padded with invalid rows). Scan normals are flipped when most of them
+    ``n_points`` (padded with invalid rows): up to ``motion_fraction`` of them from the points
+    farther than ``motion_threshold_mm`` from the registered neutral (the expression's moving
+    region; :class:`~jaxface.fit.solve.FitOptions`), the rest evenly from all. Scan normals are flipped when most of them
     point into the face (a mesh scan wound the other way round). Landmark targets: the rig's
     rest landmarks displaced by ``T(q_scan) - q_neutral`` (labels missing in either scan are
     invalid).
@@ -360,7 +363,14 @@ def scan_fit_inputs(subject: Subject, scan, transform, n_points: int, *, seed: i
             "subject's face after the rigid alignment; check the landmarks of both scans."
         )
     rng = np.random.default_rng(seed)
-    order = rng.permutation(len(P))[:n_points]
+    moving = np.flatnonzero(cp.distances[keep] > motion_threshold_mm)
+    n_moving = min(int(round(motion_fraction * n_points)), len(moving))
+    if n_moving > 0:
+        first = rng.permutation(moving)[:n_moving]
+        rest = np.setdiff1d(np.arange(len(P)), first, assume_unique=True)
+        order = np.concatenate([first, rng.permutation(rest)[: n_points - n_moving]])
+    else:
+        order = rng.permutation(len(P))[:n_points]
     order.sort()
     pts = np.zeros((n_points, 3))
     nn = np.zeros((n_points, 3))
@@ -383,7 +393,7 @@ def scan_fit_inputs(subject: Subject, scan, transform, n_points: int, *, seed: i
         else:
             tgt[i] = rest[name]
     return {"points": pts, "normals": nn, "valid": valid, "landmarks": tgt, "landmark_valid": lv,
-            "n_candidates": int(len(P))}
+            "n_candidates": int(len(P)), "n_moving": int(len(moving)), "n_moving_drawn": int(n_moving)}
 
 
 @dataclass
@@ -676,7 +686,9 @@ def fit_expressions(
 
     def prepare(s):
         al = align_scans(s, subject.neutral, fixed_index=subject.neutral_index)
-        return al, scan_fit_inputs(subject, s, al.transform, opt.n_points, seed=opt.seed)
+        return al, scan_fit_inputs(subject, s, al.transform, opt.n_points, seed=opt.seed,
+                                   motion_fraction=opt.motion_fraction,
+                                   motion_threshold_mm=opt.motion_threshold_mm)
 
     def evaluate(item):
         s, al, f, motion = item
