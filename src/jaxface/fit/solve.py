@@ -172,10 +172,9 @@ class FitOptions:
             all the scan's face points. The neutral already matches the static face, so the
             data term then weighs what the expression moves instead of the static area around
             it, which a model that cannot match every motion exactly otherwise trades it for.
-            0: every point drawn evenly. Measured on bs901's LFAU_20, UFAU_4, E_HAPPY and
-            LFAU_12L (mean error against the truth, evenly 0.676 mm): 0.5 / 0.75 / 0.9 / 1.0
-            with a 1 mm threshold 0.644 / 0.668 / - / 0.699, 0.75 with 0.5 mm 0.616, with
-            0.3 mm 0.602, with 0.2 mm 0.609; 0.6 with 0.3 mm 0.617 (README, Benchmarks).
+            0: every point drawn evenly. 0.5 (default): 19 of the 20 Bosphorus-style scans at
+            least twice as good as B0, where the even draw had 17 (README, How it works, for
+            the figures; 0.75 drove bs901's jaw opening past 1 mm).
         motion_threshold_mm: see ``motion_fraction`` (mm; above the scans' noise, below the
             1 mm of the issue's evaluation region, because a point's distance to the neutral
             sees only the motion across the surface).
