@@ -160,6 +160,7 @@ def test_fit_command_defaults_are_the_librarys():
     defaults = {p.name: p.default for p in cmd.params}
     fo, so = FitOptions(), SubjectOptions()
     assert defaults["points"] == fo.n_points
+    assert defaults["motion_fraction"] == fo.motion_fraction
     assert defaults["outer_iterations"] == fo.outer_iterations
     assert defaults["extra_iterations"] == fo.extra_iterations
     assert defaults["max_steps"] == fo.max_steps

@@ -160,6 +160,10 @@ def register(app: typer.Typer) -> None:
         backend: str = typer.Option("pbd", "--backend", help="Simulation backend: pbd or ltw."),
         pictures: bool = typer.Option(False, "--pictures", help="Also write a before/after picture per scan."),
         points: int = typer.Option(1000, "--points", min=100, help="Scan points per fit."),
+        motion_fraction: float = typer.Option(
+            0.5, "--motion-fraction", min=0.0, max=1.0,
+            help="Share of the scan points drawn from where the expression moves the skin (farther "
+                 "than 0.3 mm from the registered neutral); the rest evenly. 0 = all evenly."),
         outer_iterations: int = typer.Option(6, "--outer-iterations", min=1,
                                              help="Correspondence refreshes (one exact rig synthesis and one "
                                                   "reverse pass through the rig each)."),
@@ -209,7 +213,7 @@ def register(app: typer.Typer) -> None:
         from ..fit.pipeline import SubjectOptions
         from ..fit.solve import FitOptions
 
-        opts = FitOptions(n_points=points, outer_iterations=outer_iterations,
+        opts = FitOptions(n_points=points, motion_fraction=motion_fraction, outer_iterations=outer_iterations,
                           extra_iterations=extra_iterations, max_steps=max_steps,
                           exact_steps=exact_steps, restart_iterations=restart_iterations,
                           restart_when=RestartWhen(restart_when).value)
