@@ -163,7 +163,8 @@ def register(app: typer.Typer) -> None:
         motion_fraction: float = typer.Option(
             0.5, "--motion-fraction", min=0.0, max=1.0,
             help="Share of the scan points drawn from where the expression moves the skin (farther "
-                 "than 0.3 mm from the registered neutral); the rest evenly. 0 = all evenly."),
+                 "than FitOptions.motion_threshold_mm, 0.3 mm, from the registered neutral); the rest "
+                 "evenly. 0 = all evenly."),
         outer_iterations: int = typer.Option(6, "--outer-iterations", min=1,
                                              help="Correspondence refreshes (one exact rig synthesis and one "
                                                   "reverse pass through the rig each)."),

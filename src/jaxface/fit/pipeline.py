@@ -324,8 +324,8 @@ def subject_from_rig(
 # one expression scan
 # --------------------------------------------------------------------------------------
 def scan_fit_inputs(subject: Subject, scan, transform, n_points: int, *, seed: int = 0,
-                    preselect_mm: float = 20.0, motion_fraction: float = 0.0,
-                    motion_threshold_mm: float = 0.3) -> dict:
+                    preselect_mm: float = 20.0, motion_fraction: float = FitOptions.motion_fraction,
+                    motion_threshold_mm: float = FitOptions.motion_threshold_mm) -> dict:
     """The fitter's view of one scan, in the neutral frame (mm).
 
     Scan vertices (off the scan border, with a normal) are moved by ``transform`` (scan ->
@@ -333,7 +333,8 @@ def scan_fit_inputs(subject: Subject, scan, transform, n_points: int, *, seed: i
     region (and not beyond its border by more than 3 mm), and subsampled (seeded) to
     ``n_points`` (padded with invalid rows): up to ``motion_fraction`` of them from the points
     farther than ``motion_threshold_mm`` from the registered neutral (the expression's moving
-    region; :class:`~jaxface.fit.solve.FitOptions`), the rest evenly from all. Scan normals are flipped when most of them
+    region; defaults and meaning: :class:`~jaxface.fit.solve.FitOptions`), the rest evenly
+    from all. Scan normals are flipped when most of them
     point into the face (a mesh scan wound the other way round). Landmark targets: the rig's
     rest landmarks displaced by ``T(q_scan) - q_neutral`` (labels missing in either scan are
     invalid).
