@@ -30,8 +30,9 @@ Measures (units mm, degrees, seconds):
   other subject's neutral and same-code scan, magnitude fitted to the scan) on the single-AU
   scans it applies to, the ratio B0 / fit, scan-to-fit metrics, solver status and steps, jaw pose, and the AU readout: the
   rank of each AU named by the file's code among the fitted bilateral AUs (and the side for
-  ``LFAU_12L``), by intensity (:func:`jaxface.facs.au_intensities`) and by the skin motion each
-  AU accounts for (:func:`jaxface.fit.au_motion.au_motion`, mm);
+  ``LFAU_12L``), by intensity (:func:`jaxface.facs.au_intensities`), by the skin motion each
+  AU accounts for (:func:`jaxface.fit.au_motion.au_motion`, mm) and by the sparse readout
+  (:func:`jaxface.fit.au_motion.au_sparse`: the fewest AUs that reproduce the fit's motion);
 * the neutral scans: registration error (B0 of ``N_N``) against the truth;
 * time per expression scan: one scan alone (cold: includes compiling the solver; warm: a
   second scan with the compiled solver), the batch (wall time / number of scans), and every
@@ -267,6 +268,10 @@ def bench_subject(truth, subject_id: str, opt, *, single: bool, subject_options=
             "au_motion_ranks": _au_ranks(r.au_motion_mm, exp),
             "top_aus_by_motion_mm": r.strongest_aus(6, bilateral_only=True, by="motion"),
             "au12_sides_motion_mm": {k: r.au_motion_mm.get(k) for k in ("AU12L", "AU12R")},
+            "au_sparse_ranks": _au_ranks(r.au_sparse, exp),
+            "top_aus_sparse": r.strongest_aus(6, bilateral_only=True, by="sparse"),
+            "au12_sides_sparse": {k: r.au_sparse.get(k) for k in ("AU12L", "AU12R")},
+            "au_sparse_misfit_mm": r.au_sparse_misfit_mm,
             "activations": r.activations,
         }
         out["scans"].append(row)
@@ -445,6 +450,10 @@ def main() -> None:
             print(f"{'':22s} by skin motion: {s['au_motion_ranks']} "
                   f"{[(k, round(v, 2)) for k, v in s['top_aus_by_motion_mm'][:4]]} mm"
                   + (f" 12L/12R {s['au12_sides_motion_mm']['AU12L']:.2f}/{s['au12_sides_motion_mm']['AU12R']:.2f} mm"
+                     if s["code"] == "LFAU_12L" else ""))
+            print(f"{'':22s} sparse: {s['au_sparse_ranks']} "
+                  f"{[(k, round(v, 2)) for k, v in s['top_aus_sparse'][:4]]} (misfit {s['au_sparse_misfit_mm']:.2f} mm)"
+                  + (f" 12L/12R {s['au12_sides_sparse']['AU12L']:.2f}/{s['au12_sides_sparse']['AU12R']:.2f}"
                      if s["code"] == "LFAU_12L" else ""))
         ex = [s for s in r["scans"] if s["code"] != "N_N"]
         print(f"  mean over expressions: fit {np.mean([s['fit_mean'] for s in ex]):.3f}  B0 "

@@ -161,6 +161,7 @@ def test_fit_command_defaults_are_the_librarys():
     fo, so = FitOptions(), SubjectOptions()
     assert defaults["points"] == fo.n_points
     assert defaults["motion_fraction"] == fo.motion_fraction
+    assert defaults["au_sparse_weight"] == fo.au_sparse_weight
     assert defaults["outer_iterations"] == fo.outer_iterations
     assert defaults["extra_iterations"] == fo.extra_iterations
     assert defaults["max_steps"] == fo.max_steps

@@ -9,7 +9,7 @@ Contract (other tools call it; keep it stable)::
 
 Landmark files default to the scan path with suffix ``.lm3``. Several ``--scan`` options fit a
 batch (solved together in one compiled call) with a progress bar. Per scan it writes
-``DIR/<scan-stem>.json`` (keys: ``activations``, ``au_intensities``, ``au_motion_mm``, ``jaw``, ``rigid``,
+``DIR/<scan-stem>.json`` (keys: ``activations``, ``au_intensities``, ``au_motion_mm``, ``au_sparse``, ``jaw``, ``rigid``,
 ``metrics``, ``baselines``, ``solver``, ``frame``; see :class:`jaxface.fit.pipeline.ExpressionFit`)
 and ``DIR/<scan-stem>.fitted.ply`` (the fitted skin in the scan's own frame, mm); with
 ``--pictures`` also ``DIR/<scan-stem>.fit.png`` (scan, before, fit, error heat map).
@@ -185,6 +185,11 @@ def register(app: typer.Typer) -> None:
             RestartWhen.unconverged, "--restart-when",
             help="Which fits with activations at 1 restart: 'unconverged' (only those that did not "
                  "converge, the trap's signature) or 'saturated' (all of them; slower)."),
+        au_sparse_weight: float = typer.Option(
+            0.02, "--au-sparse-weight", min=0.0,
+            help="L1 weight of the sparse AU readout (au_sparse in the JSON: the fewest AUs that "
+                 "reproduce the fit's skin motion; mm^2 of mean squared motion per unit intensity; "
+                 "0 = plain least squares). It reads the fit and does not change it."),
         levels: int = typer.Option(4, "--levels", min=1, help="Activation knots of the rig's reduced model."),
         pitch_knots: int = typer.Option(12, "--pitch-knots", min=3, help="Jaw pitch knots of the reduced model."),
         batch_size: Optional[int] = typer.Option(  # noqa: UP007
@@ -217,7 +222,7 @@ def register(app: typer.Typer) -> None:
         opts = FitOptions(n_points=points, motion_fraction=motion_fraction, outer_iterations=outer_iterations,
                           extra_iterations=extra_iterations, max_steps=max_steps,
                           exact_steps=exact_steps, restart_iterations=restart_iterations,
-                          restart_when=RestartWhen(restart_when).value)
+                          restart_when=RestartWhen(restart_when).value, au_sparse_weight=au_sparse_weight)
         sopts = SubjectOptions(backend=backend, levels=levels, pitch_knots=pitch_knots)
         t0 = time.perf_counter()
         prog = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
@@ -252,13 +257,15 @@ def register(app: typer.Typer) -> None:
             table.add_column(col, justify="right")
         table.add_column("strongest AUs (intensity)")
         table.add_column("most visible AUs (skin motion, mm)")
+        table.add_column("fewest AUs for the motion (sparse)")
         for r in results:
             aus = ", ".join(f"{k} {v:.2f}" for k, v in r.strongest_aus(3, bilateral_only=True))
             vis = ", ".join(f"{k} {v:.2f}" for k, v in r.strongest_aus(3, bilateral_only=True, by="motion"))
+            spa = ", ".join(f"{k} {v:.2f}" for k, v in r.strongest_aus(3, bilateral_only=True, by="sparse"))
             table.add_row(r.stem, r.status if r.status == "successful" else f"[yellow]{r.status}[/]",
                           f"{r.metrics.scan_to_fit['all'].mean:.3f}",
                           f"{r.baselines['B0'].scan_to_fit['all'].mean:.3f}",
-                          f"{r.baselines['B1'].scan_to_fit['all'].mean:.3f}", f"{r.jaw['pitch_deg']:.1f}", aus, vis)
+                          f"{r.baselines['B1'].scan_to_fit['all'].mean:.3f}", f"{r.jaw['pitch_deg']:.1f}", aus, vis, spa)
         console.print(table)
         bad = [r.stem for r in results if r.status != "successful"]
         if bad:

@@ -13,8 +13,10 @@ Submodules (NumPy/SciPy at build time; nothing here is on the jit path):
   ``bosphorus_style`` data.
 * :mod:`jaxface.fit.solve` (JAX): the inverse solve: activations, jaw pose and a rigid
   correction by optimistix Levenberg-Marquardt on point-to-plane + landmark residuals.
-* :mod:`jaxface.fit.au_motion` (JAX): the skin motion (mm) each action unit accounts for in a
-  fit, the AUs an expression *shows* (alongside the intensities of :func:`jaxface.facs.au_intensities`).
+* :mod:`jaxface.fit.au_motion` (JAX): AU readouts from a fit's skin motion: the motion (mm)
+  each action unit accounts for (the AUs an expression *shows*) and the sparse intensities
+  (the fewest AUs that reproduce the motion), alongside the intensities of
+  :func:`jaxface.facs.au_intensities`.
 * :mod:`jaxface.fit.pipeline`: neutral scan -> subject rig (:func:`prepare_subject`);
   expression scans -> activations, AUs, fitted skin, metrics, baselines
   (:func:`fit_expressions`); what ``jaxface fit`` runs.

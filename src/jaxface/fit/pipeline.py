@@ -49,7 +49,7 @@ __all__ = [
 ]
 
 #: top-level keys of the ``<stem>.json`` written by :meth:`ExpressionFit.write`
-JSON_KEYS = ("activations", "au_intensities", "au_motion_mm", "jaw", "rigid", "metrics", "baselines", "solver", "frame")
+JSON_KEYS = ("activations", "au_intensities", "au_motion_mm", "au_sparse", "jaw", "rigid", "metrics", "baselines", "solver", "frame")
 
 
 @dataclass(frozen=True)
@@ -410,6 +410,9 @@ class ExpressionFit:
         activations: muscle -> activation; au_intensities: AU -> intensity.
         au_motion_mm: AU -> RMS skin motion (mm) that AU's share of the fit produces alone
             (:func:`jaxface.fit.au_motion.au_motion`): which AUs the expression *shows*.
+        au_sparse: AU -> intensity of the sparsest AU combination that reproduces the fit's
+            skin motion (:func:`jaxface.fit.au_motion.au_sparse`); au_sparse_misfit_mm: the RMS
+            distance (mm) between that combination's motion and the fit's.
         metrics: :class:`jaxface.fit.metrics.FitMetrics` of the fit; baselines: ``{"B0":
             FitMetrics, "B1": FitMetrics}``; baseline_meshes: ``{"B0": TriMesh, "B1": TriMesh}``.
         muscle_names: the rig's control order.
@@ -432,6 +435,8 @@ class ExpressionFit:
     options: FitOptions
     notes: list = field(default_factory=list)
     face_mask: np.ndarray | None = None
+    au_sparse: dict = field(default_factory=dict)
+    au_sparse_misfit_mm: float | None = None
 
     @property
     def status(self) -> str:
@@ -504,6 +509,8 @@ class ExpressionFit:
             "activations": {k: float(v) for k, v in self.activations.items()},
             "au_intensities": {k: float(v) for k, v in self.au_intensities.items()},
             "au_motion_mm": {k: float(v) for k, v in self.au_motion_mm.items()},
+            "au_sparse": {k: float(v) for k, v in self.au_sparse.items()},
+            "au_sparse_misfit_mm": self.au_sparse_misfit_mm,
             "jaw": self.jaw,
             "rigid": self.rigid_dict(),
             "metrics": self.metrics.to_dict(),
@@ -516,10 +523,12 @@ class ExpressionFit:
                       by: str = "intensity") -> list[tuple[str, float]]:
         """The ``n`` strongest AUs, strongest first: ``(name, intensity)`` with
         ``by="intensity"`` (:attr:`au_intensities`), ``(name, mm)`` with ``by="motion"``
-        (:attr:`au_motion_mm`, the skin motion each AU accounts for)."""
-        if by not in ("intensity", "motion"):
-            raise ValueError(f"by must be 'intensity' or 'motion', got {by!r}.")
-        src = self.au_intensities if by == "intensity" else self.au_motion_mm
+        (:attr:`au_motion_mm`, the skin motion each AU accounts for), ``(name, intensity)``
+        with ``by="sparse"`` (:attr:`au_sparse`, the fewest AUs that reproduce the motion)."""
+        srcs = {"intensity": self.au_intensities, "motion": self.au_motion_mm, "sparse": self.au_sparse}
+        if by not in srcs:
+            raise ValueError(f"by must be 'intensity', 'motion' or 'sparse', got {by!r}.")
+        src = srcs[by]
         items = [(k, v) for k, v in src.items()
                  if not (bilateral_only and k[-1] in "LR")]
         return sorted(items, key=lambda kv: -kv[1])[:n]
@@ -655,7 +664,7 @@ def fit_expressions(
     """
     from ..anatomy.jaw import JawPose
     from ..facs import au_intensities
-    from .au_motion import au_motion
+    from .au_motion import au_motion, au_sparse, motion_gram
     from ..io import load_scan
     from ..mesh import TriMesh
     from .align import align_scans
@@ -682,6 +691,7 @@ def fit_expressions(
         loaded.append(s)
     bs = batch_size or max(len(loaded), 1)
     results: list[ExpressionFit] = []
+    gram = motion_gram(subject.response) if loaded else None  # the sparse AU readout's, once per call
     reg = subject.registration
     tris = subject.triangles
 
@@ -692,7 +702,7 @@ def fit_expressions(
                                    motion_threshold_mm=opt.motion_threshold_mm)
 
     def evaluate(item):
-        s, al, f, motion = item
+        s, al, f, motion, sparse = item
         Ti = al.transform.inverse()
         fitted = TriMesh(Ti.apply(f.skin), tris, validate=False)
         flm = subject.landmarks_on(fitted.vertices)
@@ -711,7 +721,7 @@ def fit_expressions(
         return ExpressionFit(
             stem=_stem(s), scan=s, alignment=al, fit=f, fitted=fitted, fitted_landmarks=flm,
             activations=dict(zip(subject.muscle_names, map(float, f.activations))), au_intensities=aus,
-            au_motion_mm=motion,
+            au_motion_mm=motion, au_sparse=sparse[0], au_sparse_misfit_mm=sparse[1],
             metrics=metrics, baselines=base, baseline_meshes={"B0": b0m, "B1": b1m},
             muscle_names=subject.muscle_names, backend=subject.backend, options=opt, notes=notes,
             face_mask=np.asarray(reg.face_mask, bool),
@@ -730,7 +740,9 @@ def fit_expressions(
         say(f"evaluating {len(batch)} fit(s) and the baselines")
         motions = [au_motion(subject.response, f.activations, f.jaw_effective, subject.muscle_names)
                    for f in fits]      # JAX, on this thread (one compilation per subject)
-        for ef in thread_map(evaluate, list(zip(batch, aligns, fits, motions)), outer=True):
+        sparse = [au_sparse(subject.response, f.activations, f.jaw_effective, subject.muscle_names,
+                            weight=opt.au_sparse_weight, gram=gram) for f in fits]
+        for ef in thread_map(evaluate, list(zip(batch, aligns, fits, motions, sparse)), outer=True):
             results.append(ef)
             if on_result is not None:
                 on_result(ef)

@@ -277,6 +277,10 @@ class FitOptions:
         converge_activation: see ``extra_iterations`` (unit activation).
         converge_jaw: see ``extra_iterations`` (degrees and mm).
         converge_cost: see ``extra_iterations`` (relative decrease of the inner cost).
+        au_sparse_weight: L1 weight of the sparse AU readout
+            (:func:`jaxface.fit.au_motion.au_sparse`, mm^2 of mean squared skin motion per unit
+            intensity; it reads the fit, it does not change it). 0.02 was chosen on the 20
+            Bosphorus-style scans' fits from 0.005-0.05 (README, "AU readouts").
     """
 
     n_points: int = 1000
@@ -310,8 +314,13 @@ class FitOptions:
     converge_activation: float = 5e-3
     converge_jaw: float = 0.05
     converge_cost: float = 0.01
+    au_sparse_weight: float = 0.02
 
     def __post_init__(self):
+        w = float(self.au_sparse_weight)
+        if not (np.isfinite(w) and w >= 0.0):
+            raise ValueError(f"FitOptions.au_sparse_weight must be a finite number >= 0 (mm^2 per unit "
+                             f"intensity), got {self.au_sparse_weight!r}.")
         if not 0.0 <= float(self.motion_fraction) <= 1.0:
             raise ValueError(f"FitOptions.motion_fraction must lie in [0, 1], got {self.motion_fraction!r}.")
         if not float(self.motion_threshold_mm) >= 0.0:
