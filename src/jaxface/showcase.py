@@ -160,6 +160,7 @@ def _scan_and_fit(rig, head, out: Path, say, timings) -> list[dict]:
             "max_activation_error": float(np.abs(a_fit - a_true).max()),
             "strongest_aus": r.strongest_aus(4, bilateral_only=False),
             "most_visible_aus_mm": r.strongest_aus(4, bilateral_only=True, by="motion"),
+            "sparse_aus": r.strongest_aus(4, bilateral_only=True, by="sparse"),
             "files": {k: str(Path(v).relative_to(out)) for k, v in files.items()},
         })
     return rows
@@ -174,14 +175,16 @@ def _markdown(rep: dict) -> str:
     if rep.get("fits"):
         L += ["## Inverse: synthetic Bosphorus-style scans fitted back", "",
               "| scan | status | scan -> fit (mm) | skin error mean / max (mm) | jaw pitch true / fit (deg) | "
-              "max activation error | strongest AUs | most visible AUs (mm) |", "|---|---|---|---|---|---|---|---|"]
+              "max activation error | strongest AUs | most visible AUs (mm) | fewest AUs for the motion |",
+              "|---|---|---|---|---|---|---|---|---|"]
         for f in rep["fits"]:
             aus = ", ".join(f"{k} {v:.2f}" for k, v in f["strongest_aus"])
             vis = ", ".join(f"{k} {v:.2f}" for k, v in f["most_visible_aus_mm"])
+            spa = ", ".join(f"{k} {v:.2f}" for k, v in f.get("sparse_aus", []))
             L.append(f"| {f['stem']} | {f['status']} | {f['scan_to_fit_mean_mm']:.3f} | "
                      f"{f['skin_error_mm']['mean']:.3f} / {f['skin_error_mm']['max']:.2f} | "
                      f"{f['jaw_true']['pitch_deg']:.1f} / {f['jaw_fit']['pitch_deg']:.2f} | "
-                     f"{f['max_activation_error']:.3f} | {aus} | {vis} |")
+                     f"{f['max_activation_error']:.3f} | {aus} | {vis} | {spa} |")
         L.append("")
         for f in rep["fits"]:
             if "picture" in f["files"]:
