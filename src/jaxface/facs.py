@@ -289,8 +289,16 @@ def au_intensities(activations, muscle_names, jaw=None, *, cheek_puff: float = 0
         ``{AU: intensity}`` sorted by AU number, plus the L/R variants.
     """
     aus, x, _ = au_decomposition(activations, muscle_names)
+    return _au_dict(aus, x, jaw, cheek_puff)
+
+
+def _au_dict(aus, values, jaw=None, cheek_puff: float = 0.0) -> dict[str, float]:
+    """``{AU: intensity}`` from unilateral-variant intensities ``values`` (``aus`` as
+    :func:`au_decomposition` returns them; a bilateral AU is the mean of its sides) and the
+    jaw AUs of ``jaw`` (:func:`au_intensities`' rules); sorted by AU number. Shared by
+    :func:`au_intensities` and :func:`jaxface.fit.au_motion.au_sparse`."""
     out: dict[str, float] = {}
-    for au, v in zip(aus, x):
+    for au, v in zip(aus, values):
         out[au] = float(v)
         if au.endswith(("L", "R")):
             base = au[:-1]
@@ -307,5 +315,4 @@ def au_intensities(activations, muscle_names, jaw=None, *, cheek_puff: float = 0
         out["AU30"] = max(out["AU30L"], out["AU30R"])
     if cheek_puff:
         out["AU34"] = float(np.clip(cheek_puff, 0.0, 1.0))
-
     return sort_aus(out)

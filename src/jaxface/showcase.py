@@ -180,7 +180,7 @@ def _markdown(rep: dict) -> str:
         for f in rep["fits"]:
             aus = ", ".join(f"{k} {v:.2f}" for k, v in f["strongest_aus"])
             vis = ", ".join(f"{k} {v:.2f}" for k, v in f["most_visible_aus_mm"])
-            spa = ", ".join(f"{k} {v:.2f}" for k, v in f.get("sparse_aus", []))
+            spa = ", ".join(f"{k} {v:.2f}" for k, v in f["sparse_aus"])
             L.append(f"| {f['stem']} | {f['status']} | {f['scan_to_fit_mean_mm']:.3f} | "
                      f"{f['skin_error_mm']['mean']:.3f} / {f['skin_error_mm']['max']:.2f} | "
                      f"{f['jaw_true']['pitch_deg']:.1f} / {f['jaw_fit']['pitch_deg']:.2f} | "

@@ -157,11 +157,11 @@ def _spline_weights(x, knots):
 def _sparse_cost(G, knots, i, rows, phi_a, weight):
     """Cost of :func:`au_sparse` at intensities ``i`` ``(K,)``: ``(cost, mean squared misfit
     mm^2, d cost / d i)``. ``rows`` ``(K, M)`` the AU table rows, ``phi_a`` the spline
-    weights of the fitted activations less those of rest."""
+    weights of the fitted activations (the rest state's weights cancel in the difference)."""
 
     def f(i):
         act = jnp.clip(i @ rows, 0.0, 1.0)
-        d = _spline_weights(act, knots) - _spline_weights(jnp.zeros_like(act), knots) - phi_a
+        d = _spline_weights(act, knots) - phi_a
         mis = d @ (G @ d)
         return mis + weight * jnp.sum(i), mis
 
@@ -209,7 +209,7 @@ def au_sparse(response, activations, jaw, muscle_names: Sequence[str], *,
     from scipy.optimize import minimize
 
     from ..anatomy.jaw import JawPose
-    from ..facs import au_intensities
+    from ..facs import _au_dict
 
     w = float(weight)
     if not (np.isfinite(w) and w >= 0.0):
@@ -219,8 +219,7 @@ def au_sparse(response, activations, jaw, muscle_names: Sequence[str], *,
     dt = response.rest.dtype
     G = jnp.asarray(motion_gram(response) if gram is None else gram, dt)
     knots = jnp.asarray(response.levels, dt)
-    aj = jnp.asarray(a, dt)
-    phi_a = _spline_weights(aj, knots) - _spline_weights(jnp.zeros_like(aj), knots)
+    phi_a = _spline_weights(jnp.asarray(a, dt), knots)
     R = jnp.asarray(rows, dt)
     wj = jnp.asarray(w, dt)
 
@@ -235,13 +234,6 @@ def au_sparse(response, activations, jaw, muscle_names: Sequence[str], *,
     else:
         x = np.zeros(0)
     _, mis, _ = _sparse_cost(G, knots, jnp.asarray(x, dt), R, phi_a, wj)
-    out: dict[str, float] = {}
-    for au, v in zip(aus, x):
-        out[au] = float(v)
-        if au.endswith(("L", "R")):
-            out[au[:-1]] = out.get(au[:-1], 0.0) + 0.5 * float(v)
     je = np.asarray(jaw, np.float64).ravel()
-    jaw_aus = au_intensities(np.zeros(len(a)), muscle_names, JawPose(float(je[0]), float(je[1]), float(je[2])))
-    for k in ("AU26", "AU27", "AU29", "AU30", "AU30L", "AU30R"):
-        out[k] = jaw_aus[k]
-    return sort_aus(out), float(np.sqrt(max(float(mis), 0.0)))
+    out = _au_dict(aus, x, JawPose(float(je[0]), float(je[1]), float(je[2])))
+    return out, float(np.sqrt(max(float(mis), 0.0)))

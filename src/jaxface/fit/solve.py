@@ -110,6 +110,7 @@ import numpy as np
 import optimistix as optx
 
 from ..errors import FitError
+from .au_motion import AU_SPARSE_WEIGHT
 from .metrics import SurfaceIndex
 from .._arrays import to_jax
 
@@ -314,7 +315,7 @@ class FitOptions:
     converge_activation: float = 5e-3
     converge_jaw: float = 0.05
     converge_cost: float = 0.01
-    au_sparse_weight: float = 0.02
+    au_sparse_weight: float = AU_SPARSE_WEIGHT
 
     def __post_init__(self):
         w = float(self.au_sparse_weight)
