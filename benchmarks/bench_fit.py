@@ -8,7 +8,7 @@ Run from the repository root (needs the shared data: ``JAXFACE_SHARED`` or ``../
                                    [--round-trip-ict] [--exact-steps N]
                                    [--sweeps MUSCLE/SKIN[/RHO] | fast | converged | reference]
                                    [--results DIR] [--no-b2] [--warm-batch] [--truth-as-scan]
-                                   [--motion-fraction F]
+                                   [--motion-fraction F] [--robust-floor FIRST,LAST]
 
 ``--truth-as-scan`` fits the face skin of each expression's exact truth mesh (noise-free and
 hole-free, with the scan's landmarks) instead of its range scan: how close the model itself
@@ -382,6 +382,8 @@ def main() -> None:
                     help="weight of the landmark term (default: FitOptions')")
     ap.add_argument("--motion-fraction", type=float, default=None,
                     help="share of the scan points drawn from the expression's moving region (default: FitOptions')")
+    ap.add_argument("--robust-floor", default=None, metavar="FIRST,LAST",
+                    help="lower bound of the Tukey cut-off (mm), annealed from FIRST to LAST (default: FitOptions')")
     ap.add_argument("--no-gradient-correction", action="store_true",
                     help="fit without the exact-gradient correction of the inner solves")
     ap.add_argument("--sweeps", default=None,
@@ -408,6 +410,12 @@ def main() -> None:
         kw["landmark_weight"] = args.landmark_weight
     if args.motion_fraction is not None:
         kw["motion_fraction"] = args.motion_fraction
+    if args.robust_floor is not None:
+        try:
+            kw["robust_floor_mm"] = tuple(float(v) for v in args.robust_floor.split(","))
+            assert len(kw["robust_floor_mm"]) == 2
+        except (ValueError, AssertionError):
+            ap.error(f"--robust-floor takes two numbers FIRST,LAST (mm), got {args.robust_floor!r}")
     opt = FitOptions(**kw)
     from jaxface.fit.pipeline import SubjectOptions
 

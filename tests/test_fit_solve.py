@@ -535,8 +535,8 @@ def test_fit_rejects_unknown_controls(round_trip):
 
 
 def test_batch_fit_matches_single_fits_in_input_order(round_trip):
-    """A batch (alignment and evaluation of the scans on the outer thread pool, one batched
-    solve) returns one fit per scan, in input order, each the fit the scan gets alone: to
+    """A batch (alignment, exact syntheses, inner solves and evaluation of the scans on the
+    outer thread pool) returns one fit per scan, in input order, each the fit the scan gets alone: to
     rounding, since a scan whose active set has settled is not re-solved with the others.
     (It was, and its activations then moved with the batch: 4e-8 here, up to 1.4e-6 on four
     Bosphorus-style scans of bs900 in float64, without a visible change of truth error.)"""

@@ -55,3 +55,31 @@ def test_outer_jobs_may_use_the_inner_pool():
     par = thread_map(job, qs, outer=True)
     for q, d in zip(qs, par):
         np.testing.assert_array_equal(d, idx.query(q, chunk=10_000).distances)
+
+
+
+def test_outer_jobs_that_submit_outer_jobs_finish():
+    """An outer job that maps outer jobs itself (a batch fit's per-scan work, should a caller
+    run fit_points inside an outer job) runs them on its own thread instead of waiting on its
+    own pool, whose workers could then all be waiting: every job finishes, in order. Run in a
+    child process, so that a deadlock fails the test (timeout) instead of hanging it."""
+    import subprocess
+    import sys
+
+    code = (
+        "import threading\n"
+        "from jaxface._parallel import n_workers, thread_map\n"
+        "seen = []\n"
+        "def inner(j):\n"
+        "    seen.append(threading.current_thread().name)\n"
+        "    return j + 1\n"
+        "out = thread_map(lambda i: thread_map(inner, range(i, i + 3), outer=True), range(6), outer=True)\n"
+        "assert out == [[i + 1, i + 2, i + 3] for i in range(6)], out\n"
+        "assert n_workers() < 2 or all(n.startswith('jaxface-outer') for n in seen), seen\n"
+        "print('ok')\n"
+    )
+    try:
+        r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    except subprocess.TimeoutExpired:
+        pytest.fail("outer jobs mapping outer jobs deadlocked")
+    assert r.returncode == 0 and r.stdout.strip() == "ok", r.stderr

@@ -649,11 +649,13 @@ def fit_expressions(
         options: :class:`~jaxface.fit.solve.FitOptions`.
         scan_landmarks: optional landmarks per scan (override the scans' own).
         progress: called with short texts.
-        batch_size: scans solved together in one compiled call (default: all;
-            :func:`~jaxface.fit.solve.solve_inner`). The alignment
-            and the evaluation (metrics, baselines) of a batch's scans run concurrently on the
-            outer thread pool (:mod:`jaxface._parallel`), so a batch costs less per scan than
-            single fits.
+        batch_size: scans fitted together (default: all;
+            :func:`~jaxface.fit.solve.solve_inner`). The alignment, the exact syntheses
+            and inner solves of every outer iteration, and the evaluation (metrics,
+            baselines) of a batch's scans run concurrently on the outer thread pool
+            (:mod:`jaxface._parallel`), so a batch costs less per scan than single fits
+            (README, "A batch fits its scans two at a time"), and each scan gets the fit it
+            gets alone.
         on_result: called with each finished :class:`ExpressionFit` (e.g. to write it).
 
     Returns:
