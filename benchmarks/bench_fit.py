@@ -412,10 +412,12 @@ def main() -> None:
         kw["motion_fraction"] = args.motion_fraction
     if args.robust_floor is not None:
         try:
-            kw["robust_floor_mm"] = tuple(float(v) for v in args.robust_floor.split(","))
-            assert len(kw["robust_floor_mm"]) == 2
-        except (ValueError, AssertionError):
+            floor = tuple(float(v) for v in args.robust_floor.split(","))
+        except ValueError:
+            floor = ()
+        if len(floor) != 2:
             ap.error(f"--robust-floor takes two numbers FIRST,LAST (mm), got {args.robust_floor!r}")
+        kw["robust_floor_mm"] = floor
     opt = FitOptions(**kw)
     from jaxface.fit.pipeline import SubjectOptions
 

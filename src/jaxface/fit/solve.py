@@ -1178,8 +1178,8 @@ def solve_inner(y0, points: PointSet, priors: Priors, options: FitOptions, *, mo
 
     In ``"map"`` mode (the CPU default) each scan is solved by the same compiled single-scan
     solve, the scans on the outer thread pool (:func:`jaxface._parallel.thread_map`): a batch
-    of any size, and the
-    subsets that :func:`fit_points` goes on with, cost no new compilation (on the 2-core CPU
+    of any size, and the subsets that :func:`fit_points` goes on with, cost no new
+    compilation (on the 2-core CPU
     a ``lax.map`` over the batch ran at the same speed per scan but compiled once per batch
     size). ``"vmap"`` (accelerators) pads the batch to a power of two
     (:func:`padded_batch_size`) and compiles one parallel solve per padded size.
