@@ -57,7 +57,6 @@ def test_outer_jobs_may_use_the_inner_pool():
         np.testing.assert_array_equal(d, idx.query(q, chunk=10_000).distances)
 
 
-
 def test_outer_jobs_that_submit_outer_jobs_finish():
     """An outer job that maps outer jobs itself (a batch fit's per-scan work, should a caller
     run fit_points inside an outer job) runs them on its own thread instead of waiting on its

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import functools
 import os
+import threading
 from typing import Callable, Iterable, TypeVar
 
 __all__ = ["thread_map", "n_workers"]
@@ -31,19 +32,21 @@ def n_workers() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+#: thread-name prefix of the outer pool's workers (:func:`_on_outer_worker`)
+_OUTER_PREFIX = "jaxface-outer"
+
+
 @functools.lru_cache(maxsize=2)
 def _pool(outer: bool = False):
     import concurrent.futures
 
-    name = "jaxface-outer" if outer else "jaxface"
+    name = _OUTER_PREFIX if outer else "jaxface"
     return concurrent.futures.ThreadPoolExecutor(max_workers=n_workers(), thread_name_prefix=name)
 
 
 def _on_outer_worker() -> bool:
     """Whether this thread is a worker of the outer pool."""
-    import threading
-
-    return threading.current_thread().name.startswith("jaxface-outer")
+    return threading.current_thread().name.startswith(_OUTER_PREFIX)
 
 
 def thread_map(fn: Callable[[T], R], items: Iterable[T], *, outer: bool = False) -> list[R]:

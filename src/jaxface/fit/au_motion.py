@@ -42,7 +42,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..facs import AU_JAW, au_decomposition, sort_aus
+from ..facs import AU_JAW, _au_dict, au_decomposition, sort_aus
 
 __all__ = ["au_motion", "au_sparse", "motion_gram", "AU_SPARSE_WEIGHT"]
 
@@ -209,7 +209,6 @@ def au_sparse(response, activations, jaw, muscle_names: Sequence[str], *,
     from scipy.optimize import minimize
 
     from ..anatomy.jaw import JawPose
-    from ..facs import _au_dict
 
     w = float(weight)
     if not (np.isfinite(w) and w >= 0.0):
