@@ -121,6 +121,27 @@ def test_lower_face_aus(rig, results):
     assert d23[0] < -0.3                                         # AU23 narrows the mouth
 
 
+def test_the_modiolus_carries_the_corner_muscles_pull_into_the_lips(rig):
+    """The buccinator (AU14) reaches the lips only through the modiolus: with the ring's
+    modiolus weights zeroed the corners move under 1.5 mm and the lips' mid-line not at all;
+    with them the corners go back several mm and the lower lip's mid-line follows (the
+    coupling the README's lip-stretcher analysis measures; MODIOLUS_SIGMA_MM sets its reach)."""
+    import equinox as eqx
+
+    a, _, _ = facs.aus_to_controls({"AU14": 1.0}, rig.muscle_names)
+    off = eqx.tree_at(lambda r: r.muscles.mod_w, rig, jnp.zeros_like(rig.muscles.mod_w))
+    synth = jax.jit(lambda r, a: synthesize_state(r, a, JawPose(0.0)).skin)
+    rest = np.asarray(rig.rest)
+    on_x, off_x = (np.asarray(synth(r, jnp.asarray(a))) - rest for r in (rig, off))
+    for side, sgn in (("Left", 1), ("Right", -1)):
+        i = _lm(rig, f"{side} mouth corner")
+        assert np.linalg.norm(off_x[i]) < 1.5, off_x[i]
+        assert on_x[i][2] < -3.0 and sgn * on_x[i][0] > 2.0, on_x[i]   # back along the teeth, out
+    mid = _lm(rig, "Lower lip inner middle")
+    assert np.linalg.norm(off_x[mid]) < 0.1, off_x[mid]
+    assert on_x[mid][2] < -1.0, on_x[mid]
+
+
 def test_au26_opens_the_mouth(rig, results):
     up = _disp(results, rig, "AU26", "Upper lip inner middle")
     lo = _disp(results, rig, "AU26", "Lower lip inner middle")
