@@ -33,12 +33,19 @@ def test_default_map_has_every_muscle_on_both_sides():
     assert list(R.insertion["at"]) == ["Right mouth corner"]
 
 
+def _entry(d, name):
+    return next(m for m in d["muscles"] if m["name"] == name)
+
+
 @pytest.mark.parametrize("mutate,match", [
     (lambda d: d["muscles"][0].update(kind="spring"), "unknown kind"),
     (lambda d: d["muscles"][1].update(origin={"at": {}}), "origin"),
     (lambda d: d["muscles"][2].update(lies_on=["nonexistent"]), "unknown muscle"),
     (lambda d: d["muscles"][3].update(max_contraction=1.5), "max_contraction"),
     (lambda d: d["muscles"].append(dict(d["muscles"][4])), "duplicate"),
+    (lambda d: _entry(d, "orbicularis_oris").update(n_around=32), "same n_around"),
+    (lambda d: d["defaults"]["sphincter"].update(n_around=4), "n_around must be"),
+    (lambda d: d["defaults"]["sphincter"].update(n_around=16.5), "n_around must be"),
 ])
 def test_bad_maps_are_reported(tmp_path, mutate, match):
     d = json.loads(default_muscle_map_path().read_text())
@@ -47,6 +54,30 @@ def test_bad_maps_are_reported(tmp_path, mutate, match):
     p.write_text(json.dumps(d))
     with pytest.raises(RigError, match=match):
         load_muscle_map(p)
+
+
+def test_sphincters_with_another_number_of_samples_around_build_and_contract(tmp_path):
+    """``n_around`` other than 16, on every sphincter: the rig builds with that many ring samples
+    (the modiolus weights included) and the mouth's sphincter (AU23) narrows the mouth."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxface import facs
+    from jaxface.anatomy.rig import build_rig, synthesize
+
+    d = json.loads(default_muscle_map_path().read_text())
+    d["defaults"]["sphincter"]["n_around"] = 24
+    p = tmp_path / "map.json"
+    p.write_text(json.dumps(d))
+    rig = build_rig(generic_head(), muscle_map=p)
+    assert rig.muscles.sph_ids.shape[2] == 24 and rig.muscles.mod_w.shape[2] == 24
+    a, _, _ = facs.aus_to_controls({"AU23": 1.0}, rig.muscle_names)
+    x = np.asarray(jax.jit(lambda a: synthesize(rig, a))(jnp.asarray(a)))
+    rest = np.asarray(rig.rest)
+    corners = [int(np.argmin(np.linalg.norm(rest - rig.info.landmarks[f"{s} mouth corner"], axis=1)))
+               for s in ("Left", "Right")]
+    width = lambda v: v[corners[0], 0] - v[corners[1], 0]  # noqa: E731
+    assert np.isfinite(x).all() and width(x) < width(rest) - 0.6
 
 
 def test_missing_and_invalid_files(tmp_path):

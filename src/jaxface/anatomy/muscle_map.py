@@ -182,6 +182,10 @@ def load_muscle_map(path=None) -> list[MuscleSpec]:
                     raise RigError(f"muscle map {p}: {where} needs positive '{key}' semi-axes [a, b].")
             if not (d["inner"][0] < d["outer"][0] and d["inner"][1] < d["outer"][1]):
                 raise RigError(f"muscle map {p}: {where}: the inner ellipse must lie inside the outer.")
+            na = d.get("n_around", 16)
+            if isinstance(na, bool) or not isinstance(na, int) or na < 8:
+                raise RigError(f"muscle map {p}: {where} n_around must be a whole number of samples "
+                               f"around the ring, at least 8; got {na!r}.")
         elif kind != "eyelid":
             _check_point(d.get("origin"), f"{where} origin", p)
             _check_point(d.get("insertion"), f"{where} insertion", p)
@@ -220,6 +224,10 @@ def load_muscle_map(path=None) -> list[MuscleSpec]:
                 raise RigError(f"muscle map {p}: duplicate muscle name {spec.name!r}.")
             seen.add(spec.name)
             out.append(spec)
+    around = {s.name: s.n_around for s in out if s.kind == "sphincter"}
+    if len(set(around.values())) > 1:
+        raise RigError(f"muscle map {p}: all sphincters must have the same n_around (the rig stacks their "
+                       f"rings); got {around}. Set one value on each, or in defaults['sphincter'].")
     known = {s.base for s in out}
     for s in out:
         for sup in s.lies_on:
