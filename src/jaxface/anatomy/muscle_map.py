@@ -42,6 +42,7 @@ __all__ = [
     "ActionLine",
     "SurfaceRegistry",
     "load_muscle_map",
+    "check_sphincter_rings",
     "default_muscle_map_path",
     "place_muscles",
     "KINDS",
@@ -224,16 +225,26 @@ def load_muscle_map(path=None) -> list[MuscleSpec]:
                 raise RigError(f"muscle map {p}: duplicate muscle name {spec.name!r}.")
             seen.add(spec.name)
             out.append(spec)
-    around = {s.name: s.n_around for s in out if s.kind == "sphincter"}
-    if len(set(around.values())) > 1:
-        raise RigError(f"muscle map {p}: all sphincters must have the same n_around (the rig stacks their "
-                       f"rings); got {around}. Set one value on each, or in defaults['sphincter'].")
+    check_sphincter_rings(out, f"muscle map {p}: ")
     known = {s.base for s in out}
     for s in out:
         for sup in s.lies_on:
             if sup != "skull" and sup not in known:
                 raise RigError(f"muscle map {p}: {s.name} lies on unknown muscle {sup!r}.")
     return sorted(out, key=lambda s: s.layer)
+
+
+def check_sphincter_rings(specs, where: str = "") -> None:
+    """Refuse sphincters with different ``n_around``: the rig stacks their rings in one array.
+
+    Raises:
+        RigError: naming each sphincter and its number of samples around (``where`` prefixes
+            the message, e.g. the map's file).
+    """
+    around = {s.name: s.n_around for s in specs if s.kind == "sphincter"}
+    if len(set(around.values())) > 1:
+        raise RigError(f"{where}all sphincters must have the same n_around (the rig stacks their rings); "
+                       f"got {around}. Set one value on each, or in defaults['sphincter'].")
 
 
 # ------------------------------------------------------------------------------ placement

@@ -55,8 +55,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import pbd
-from ..errors import RigError
-from .muscle_map import PlacedMuscle
+from .muscle_map import PlacedMuscle, check_sphincter_rings
 from .solver import fused_group, iterate, sweep
 from .._arrays import to_jax
 
@@ -408,12 +407,7 @@ def build_muscle_system(placed: list[PlacedMuscle], registry, control_index: dic
                 fib.append((ids, w, ctrl, cmax, g.h, off + np.arange(g.h) * g.w + j))
     h_max = max([f[4] for f in fib], default=2)
     m_max = max([f[0].shape[0] for f in fib], default=2)
-    if sph:
-        nr = {s["ids"].shape[1] for s in sph}
-        if len(nr) != 1:
-            names = [p.name for p in placed if p.kind == "sphincter"]
-            raise RigError(f"all sphincters of a muscle map must have the same n_around (their rings are "
-                           f"stacked); {names} have {sorted(nr)} samples around. Give them one 'n_around'.")
+    check_sphincter_rings([p.spec for p in placed])
     mod = _modiolus(mod_fib, fib, sph, rest, h_max)
     F = len(fib)
     fib_ids = np.zeros((F, m_max, 3), np.int64)
