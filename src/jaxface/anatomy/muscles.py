@@ -82,8 +82,8 @@ STIFFNESS = {
 STIFFNESS["linear"] = STIFFNESS["sheet"]
 POSITION_STIFFNESS = 0.2  # the same for every kind
 
-#: Modiolus: the fibromuscular node lateral to each mouth corner where zygomaticus major,
-#: risorius, levator and depressor anguli oris, buccinator and orbicularis oris interlace. The
+#: Modiolus: the fibromuscular node at each mouth corner where zygomaticus major, risorius,
+#: levator and depressor anguli oris, buccinator and orbicularis oris interlace. The
 #: contraction of a corner muscle pulls the whole node: the orbicularis oris's ring samples near
 #: a side's modiolus (Gaussian weight, sigma :data:`MODIOLUS_SIGMA_MM`) move, on top of their own
 #: support, by ``MODIOLUS_GAIN`` x the summed *contraction* displacement of that side's corner
@@ -97,11 +97,21 @@ POSITION_STIFFNESS = 0.2  # the same for every kind
 #: modiolus, and the samples near the mid-line a blend of both (weights ``g_s^2 / (g_L + g_R)``
 #: for the Gaussians ``g``), so a symmetric pull moves the lips symmetrically: giving each
 #: sample only its nearer side's pull had moved the lip mid-line 0.46 mm sideways under
-#: zygomaticus major at 1 on both sides. The sigma decides how far along the lips the corner
-#: muscles reach: with 9 mm the buccinator at 1 takes the lower lip's mid-point 5.3 mm back on
-#: bs901's rig, as far as the corners; with 6 mm 2.0 mm and with 4 mm 0.5 mm, but the corners
-#: then move less too, and neither fitted bs901's lip stretcher, smile or happiness scans better
-#: on the whole (README, Known limits, the lip stretcher).
+#: zygomaticus major at 1 on both sides.
+#:
+#: *Where* the modiolus sits decides how far along the lips the corner muscles reach. It is the
+#: mouth corner: the lateral end of the ring's middle ellipse as drawn on the skin (half-way
+#: between the map's inner and outer ellipses, 28 mm from the lips' centre on the reference
+#: head), and only the ring the corner muscles insert into has one (a sample within
+#: 2 sigma of their insertion ends: the orbicularis oris, not the eyes' rings). It used to be
+#: the mean of the corner muscles' insertion ends, which the map places 2-8 mm inside the
+#: corner; on bs901's rig that point lay 10 mm medial of the corner and 3 mm below the lips'
+#: line, where the projection onto the muscles below had put the ring's lower-lip samples
+#: (the upper-lip ones 9 mm higher). Those then took up to 0.67 of the pull against 0.44 at the
+#: corner, and the buccinator at 1 drew the lower lip's mid-point 5.3 mm back, as far as the
+#: corner; at the mouth corner it draws the corner (3.6, 0.5, -4.1) mm and the lower lip's
+#: mid-point 1.2 mm back (README, Known limits, the lip stretcher; the 20 Bosphorus-style scans'
+#: mean error 0.601 -> 0.594 mm, bs901's lip stretcher 1.88x -> 2.07x better than B0).
 MODIOLUS_GAIN = 1.0
 MODIOLUS_SIGMA_MM = 9.0
 MODIOLUS_MAX_OFFSET_MM = 10.0  # corner muscles: insertion within this of the mouth corner
@@ -396,7 +406,8 @@ def build_muscle_system(placed: list[PlacedMuscle], registry, control_index: dic
             rings = [sp.add(f.surface, f.tri, f.bary, f.positions, meshes) for f in p.fibres]
             sph.append(dict(ids=np.stack([r[0] for r in rings]), w=np.stack([r[1] for r in rings]),
                             bottom=off + np.arange(3 * g.w).reshape(3, g.w), ctrl=ctrl, cmax=cmax,
-                            axes=p.axes, ab=p.semi_axes))
+                            axes=p.axes, ab=p.semi_axes,
+                            skin=np.stack([p.insertion_skin, p.origin_skin])))
         else:
             corner = _is_corner_muscle(p)
             for j, f in enumerate(p.fibres):
@@ -635,13 +646,18 @@ def _is_corner_muscle(p) -> bool:
 def _modiolus(mod_fib, fib, sph, rest, h_max: int) -> dict:
     """Build-time modiolus data (:data:`MODIOLUS_GAIN`): per side the corner muscles' fibres
     (insertion-end sample index, weight), per sphincter ring sample and side a Gaussian weight
-    of its rest distance to that side's modiolus (mean rest position of those fibres' end
-    particles)."""
+    of its rest distance to that side's modiolus.
+
+    The modiolus of a side is the mouth corner: the ring's middle ellipse on the skin (the mean
+    of its inner and outer skin rings) at its lateral end on that side. Only a ring with a
+    sample within ``2 MODIOLUS_SIGMA_MM`` of the side's corner muscles' insertion ends (the mean
+    rest position of those fibres' end particles) has one: the ring they insert into.
+    """
     J = max(1, len(mod_fib[0]), len(mod_fib[1]))
     end = np.zeros((2, J), np.int64)
     last = np.zeros((2, J), np.int64)
     fw = np.zeros((2, J))
-    centre = np.zeros((2, 3))
+    ends = np.zeros((2, 3))
     ok = np.zeros(2, bool)
     for s_ in (0, 1):
         for k, (fi, w, pid) in enumerate(mod_fib[s_]):
@@ -649,17 +665,21 @@ def _modiolus(mod_fib, fib, sph, rest, h_max: int) -> dict:
             last[s_, k] = fi
             fw[s_, k] = w
         if mod_fib[s_]:
-            centre[s_] = rest[[pid for _, _, pid in mod_fib[s_]]].mean(axis=0)
+            ends[s_] = rest[[pid for _, _, pid in mod_fib[s_]]].mean(axis=0)
             ok[s_] = True
     n = sph[0]["ids"].shape[1] if sph else 2
     mod_w = np.zeros((len(sph), 3, n, 2))
     for k, s in enumerate(sph):
         pos = rest[s["bottom"]]                                                       # (3, n, 3)
+        mid_skin = 0.5 * (s["skin"][0] + s["skin"][1])                                # (n, 3)
+        lateral = (mid_skin - mid_skin.mean(axis=0)) @ np.asarray(s["axes"])[0]       # +x: left
         g = np.zeros((3, n, 2))
         for i in (0, 1):
-            if ok[i]:
-                d = np.linalg.norm(pos - centre[i], axis=-1)                          # (3, n)
-                g[..., i] = np.exp(-0.5 * (d / MODIOLUS_SIGMA_MM) ** 2)
+            if not ok[i] or np.linalg.norm(pos - ends[i], axis=-1).min() > 2.0 * MODIOLUS_SIGMA_MM:
+                continue
+            corner = mid_skin[int(np.argmax(lateral)) if i == 0 else int(np.argmin(lateral))]
+            d = np.linalg.norm(pos - corner, axis=-1)                                 # (3, n)
+            g[..., i] = np.exp(-0.5 * (d / MODIOLUS_SIGMA_MM) ** 2)
         # each sample follows its nearer modiolus, the two blended across the mid-line
         mod_w[k] = g * (g / np.maximum(g.sum(axis=-1, keepdims=True), 1e-300))
     return dict(mod_w=mod_w, mod_end=end, mod_last=last, mod_fw=fw)
