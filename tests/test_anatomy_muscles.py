@@ -119,3 +119,20 @@ def test_contracted_muscle_bulges_at_constant_volume(rig):
 def test_shell_stiffness_outside_0_1_is_refused(head):
     with pytest.raises(RigError, match="muscle_shell_stiffness"):
         build_rig(head, muscle_shell_stiffness=1.5)
+
+
+@pytest.mark.parametrize("n", [8, 9, 11, 16, 17])
+def test_the_modiolus_sits_at_the_rings_lateral_ends_for_any_sample_count(n):
+    """The modiolus is placed at the lateral ends of the mouth ring's middle ellipse
+    (``_ring_end`` at sample parameters 0 and n / 2): on a sampled ellipse these are the
+    analytic ends (+-a, 0, 0), exactly for a sample on them and within 0.2 mm where an odd
+    count of samples straddles the right end (the nearer of those two samples lies 2.3-4.6 mm
+    from it, and the two corners would not mirror each other)."""
+    from jaxface.anatomy.muscle_geometry import ellipse_points
+    from jaxface.anatomy.muscles import _ring_end
+
+    a, b = 28.0, 12.5
+    ring = ellipse_points(np.zeros(3), np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]), a, b, n)
+    assert np.array_equal(_ring_end(ring, 0.0), ring[0])
+    right = _ring_end(ring, 0.5 * n)
+    assert np.linalg.norm(right - [-a, 0.0, 0.0]) < (1e-12 if n % 2 == 0 else 0.2), (n, right)

@@ -649,7 +649,8 @@ def _modiolus(mod_fib, fib, sph, rest, h_max: int) -> dict:
     of its rest distance to that side's modiolus.
 
     The modiolus of a side is the mouth corner: the ring's middle ellipse on the skin (the mean
-    of its inner and outer skin rings) at its lateral end on that side. Only a ring with a
+    of its inner and outer skin rings) at its lateral end on that side (:func:`_ring_end`: sample
+    0 on the left, ``n / 2`` on the right). Only a ring with a
     sample within ``2 MODIOLUS_SIGMA_MM`` of the side's corner muscles' insertion ends (the mean
     rest position of those fibres' end particles) has one: the ring they insert into.
     """
@@ -672,17 +673,32 @@ def _modiolus(mod_fib, fib, sph, rest, h_max: int) -> dict:
     for k, s in enumerate(sph):
         pos = rest[s["bottom"]]                                                       # (3, n, 3)
         mid_skin = 0.5 * (s["skin"][0] + s["skin"][1])                                # (n, 3)
-        lateral = (mid_skin - mid_skin.mean(axis=0)) @ np.asarray(s["axes"])[0]       # +x: left
         g = np.zeros((3, n, 2))
         for i in (0, 1):
             if not ok[i] or np.linalg.norm(pos - ends[i], axis=-1).min() > 2.0 * MODIOLUS_SIGMA_MM:
                 continue
-            corner = mid_skin[int(np.argmax(lateral)) if i == 0 else int(np.argmin(lateral))]
+            corner = _ring_end(mid_skin, 0.0 if i == 0 else 0.5 * n)             # left, right
             d = np.linalg.norm(pos - corner, axis=-1)                                 # (3, n)
             g[..., i] = np.exp(-0.5 * (d / MODIOLUS_SIGMA_MM) ** 2)
         # each sample follows its nearer modiolus, the two blended across the mid-line
         mod_w[k] = g * (g / np.maximum(g.sum(axis=-1, keepdims=True), 1e-300))
     return dict(mod_w=mod_w, mod_end=end, mod_last=last, mod_fw=fw)
+
+
+def _ring_end(ring, u: float):
+    """The point at sample parameter ``u`` of a closed ring of samples ``(n, 3)`` (sample ``k``
+    at ``u = k``): the sample itself for a whole ``u``, else the cubic through the four samples
+    around it. A sphincter's rings are drawn from ``phi = 2 pi k / n`` (:func:`ellipse_points`),
+    so its lateral ends are ``u = 0`` (left) and ``u = n / 2`` (right, between two samples when
+    ``n`` is odd)."""
+    n = len(ring)
+    k = int(np.floor(u))
+    f = u - k
+    if f == 0.0:
+        return ring[k % n]
+    w = np.array([-f * (f - 1) * (f - 2) / 6, (f + 1) * (f - 1) * (f - 2) / 2,
+                  -(f + 1) * f * (f - 2) / 2, (f + 1) * f * (f - 1) / 6])
+    return w @ ring[[(k - 1) % n, k % n, (k + 1) % n, (k + 2) % n]]
 
 
 def moved_skull_points(system: MuscleSystem, R, t):
