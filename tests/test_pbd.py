@@ -134,6 +134,32 @@ def test_a_collapsed_hinge_is_inert_and_its_reverse_pass_stays_finite_in_float32
     assert np.all(np.isfinite(g1)) and not np.allclose(g1, 2 * y)
 
 
+def test_a_hinge_with_a_collapsed_wing_is_inert_and_its_reverse_pass_stays_finite_in_float32():
+    """A wing collapsed onto the edge's end (1e-7 mm from it, beside a 5 mm edge: two ring
+    particles of the orbicularis oris placed on one surface point, the pair then one sample
+    apart around the ring) has no dihedral angle at float32 precision: its normal points
+    wherever the rounding does. The hinge must be inert, and the reverse pass of its projection
+    finite. Judged by the edge and the normals alone it was active, and the default head's
+    float32 reverse pass through the rig at rest came out NaN once the modiolus moved to the
+    mouth corner."""
+    x = np.array([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0], [6e-8, -8e-8, 3e-8], [2.5, 3.0, 1.0]], np.float32)
+    S = pbd.build_system({"b": pbd.bending_constraints([[0, 1, 2, 3]], rest=[0.4])}, 4)
+    C, _, _ = pbd.bending_constraints([[0, 1, 2, 3]], rest=[0.4]).terms(
+        [jnp.asarray(x[k][:, None]) for k in range(4)])
+    assert float(C[0]) == 0.0
+    f = lambda y: jnp.sum(pbd.project(S, y, iterations=2) ** 2)  # noqa: E731
+    g = np.asarray(jax.grad(f)(jnp.asarray(x)))
+    assert g.dtype == np.float32 and np.all(np.isfinite(g))
+    np.testing.assert_allclose(g, 2 * x, rtol=1e-6, atol=1e-6)
+    # the wing 1 mm out: active, finite
+    y = x.copy()
+    y[2] = [0.3, -0.8, 0.5]
+    C1, _, _ = pbd.bending_constraints([[0, 1, 2, 3]], rest=[0.4]).terms(
+        [jnp.asarray(y[k][:, None]) for k in range(4)])
+    assert abs(float(C1[0])) > 0.1
+    assert np.all(np.isfinite(np.asarray(jax.grad(f)(jnp.asarray(y)))))
+
+
 def test_a_hinge_degenerate_at_rest_gets_no_stiffness():
     """Built from rest positions, a hinge that is degenerate there (coincident edge ends, or
     a wing along the edge's line) has no rest angle and is kept inert (stiffness 0); the

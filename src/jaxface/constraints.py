@@ -136,10 +136,14 @@ def _hinge_ok(L2, n1s, n2s, w1s, w2s, r):
 
     Scale-free on purpose: an absolute threshold (``eps^2`` mm^2) let a hinge whose edge had
     collapsed to 4e-7 mm next to 5 mm wings through, and the reverse pass of its projection
-    (squared gradients of ~1e7 / mm) overflowed float32 into NaN.
+    (squared gradients of ~1e7 / mm) overflowed float32 into NaN. The wings are judged against
+    the edge too: a wing collapsed onto an end of the edge (two particles on one point, 1e-7 mm
+    apart beside a 5 mm edge) passes the normal tests, its normal pointing wherever rounding
+    puts it, and the float32 reverse pass through the default head's rig at rest came out NaN.
     """
     # a zero edge or zero wings fail the normal tests (0 > 0), so no absolute floor is needed
-    return (L2 > r * (w1s + w2s)) & (n1s > r * L2 * w1s) & (n2s > r * L2 * w2s)
+    return ((L2 > r * (w1s + w2s)) & (w1s > r * L2) & (w2s > r * L2)
+            & (n1s > r * L2 * w1s) & (n2s > r * L2 * w2s))
 
 
 def _bend_geometry(a, b, c, d):
