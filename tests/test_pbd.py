@@ -107,31 +107,35 @@ def test_bending_alone_reaches_rest_angle():
         assert abs(got - rest) < TOL, (start, got)
 
 
+def _check_hinge_inert_then_active(x, y, rest, active_angle):
+    """The hinge ``[0, 1, 2, 3]`` at float32 positions ``x`` is inert (C = 0; the projection's
+    reverse pass finite and equal to that of the identity, d sum(x^2) / dx = 2 x); at ``y``
+    it is active (|C| > ``active_angle`` rad) with a finite reverse pass."""
+    S = pbd.build_system({"b": pbd.bending_constraints([[0, 1, 2, 3]], rest=[rest])}, 4)
+    c = lambda p: float(pbd.bending_constraints([[0, 1, 2, 3]], rest=[rest]).terms(  # noqa: E731
+        [jnp.asarray(p[k][:, None]) for k in range(4)])[0][0])
+    f = lambda p: jnp.sum(pbd.project(S, p, iterations=2) ** 2)  # noqa: E731
+    assert c(x) == 0.0
+    g = np.asarray(jax.grad(f)(jnp.asarray(x)))
+    assert g.dtype == np.float32 and np.all(np.isfinite(g))
+    np.testing.assert_allclose(g, 2 * x, rtol=1e-6, atol=1e-6)
+    assert abs(c(y)) > active_angle
+    g1 = np.asarray(jax.grad(f)(jnp.asarray(y)))
+    assert np.all(np.isfinite(g1)) and not np.allclose(g1, 2 * y)
+
+
 def test_a_collapsed_hinge_is_inert_and_its_reverse_pass_stays_finite_in_float32():
     """A hinge whose shared edge has collapsed to 4e-7 mm between 5 mm wings (seen in the
     orbicularis oris of the default head, where two ring particles sit on one surface point)
     is degenerate at float32 precision: its constraint must be inert, and the reverse pass of
     its projection finite (with the old absolute eps^2 threshold it was active, folded at
-    2.9 rad against a rest of 0, and its squared gradients of ~2e7 / mm overflowed into NaN)."""
+    2.9 rad against a rest of 0, and its squared gradients of ~2e7 / mm overflowed into NaN).
+    The same wings about a 1 mm edge: an active constraint with a finite reverse pass."""
     x = np.array([[-2.7e-7, -40.896, 103.086], [1.7e-7, -40.896, 103.086],
                   [-4.945, -40.389, 102.477], [6.821, -40.298, 101.865]], np.float32)
-    S = pbd.build_system({"b": pbd.bending_constraints([[0, 1, 2, 3]], rest=[0.0])}, 4)
-    C, _, _ = pbd.bending_constraints([[0, 1, 2, 3]], rest=[0.0]).terms(
-        [jnp.asarray(x[k][:, None]) for k in range(4)])
-    assert float(C[0]) == 0.0
-    f = lambda y: jnp.sum(pbd.project(S, y, iterations=2) ** 2)  # noqa: E731
-    g = np.asarray(jax.grad(f)(jnp.asarray(x)))
-    assert g.dtype == np.float32 and np.all(np.isfinite(g))
-    # the inert hinge leaves the points where they are: d f / d x = 2 x
-    np.testing.assert_allclose(g, 2 * x, rtol=1e-6)
-    # the same wings about a 1 mm edge: an active constraint with a finite reverse pass
     y = x.copy()
     y[0, 0], y[1, 0] = -0.5, 0.5
-    C1, _, _ = pbd.bending_constraints([[0, 1, 2, 3]], rest=[0.0]).terms(
-        [jnp.asarray(y[k][:, None]) for k in range(4)])
-    assert abs(float(C1[0])) > 1.0
-    g1 = np.asarray(jax.grad(f)(jnp.asarray(y)))
-    assert np.all(np.isfinite(g1)) and not np.allclose(g1, 2 * y)
+    _check_hinge_inert_then_active(x, y, 0.0, 1.0)
 
 
 def test_a_hinge_with_a_collapsed_wing_is_inert_and_its_reverse_pass_stays_finite_in_float32():
@@ -141,23 +145,11 @@ def test_a_hinge_with_a_collapsed_wing_is_inert_and_its_reverse_pass_stays_finit
     wherever the rounding does. The hinge must be inert, and the reverse pass of its projection
     finite. Judged by the edge and the normals alone it was active, and the default head's
     float32 reverse pass through the rig at rest came out NaN once the modiolus moved to the
-    mouth corner."""
+    mouth corner. The wing 1 mm out: active, finite."""
     x = np.array([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0], [6e-8, -8e-8, 3e-8], [2.5, 3.0, 1.0]], np.float32)
-    S = pbd.build_system({"b": pbd.bending_constraints([[0, 1, 2, 3]], rest=[0.4])}, 4)
-    C, _, _ = pbd.bending_constraints([[0, 1, 2, 3]], rest=[0.4]).terms(
-        [jnp.asarray(x[k][:, None]) for k in range(4)])
-    assert float(C[0]) == 0.0
-    f = lambda y: jnp.sum(pbd.project(S, y, iterations=2) ** 2)  # noqa: E731
-    g = np.asarray(jax.grad(f)(jnp.asarray(x)))
-    assert g.dtype == np.float32 and np.all(np.isfinite(g))
-    np.testing.assert_allclose(g, 2 * x, rtol=1e-6, atol=1e-6)
-    # the wing 1 mm out: active, finite
     y = x.copy()
     y[2] = [0.3, -0.8, 0.5]
-    C1, _, _ = pbd.bending_constraints([[0, 1, 2, 3]], rest=[0.4]).terms(
-        [jnp.asarray(y[k][:, None]) for k in range(4)])
-    assert abs(float(C1[0])) > 0.1
-    assert np.all(np.isfinite(np.asarray(jax.grad(f)(jnp.asarray(y)))))
+    _check_hinge_inert_then_active(x, y, 0.4, 0.1)
 
 
 def test_a_hinge_degenerate_at_rest_gets_no_stiffness():
