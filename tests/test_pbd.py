@@ -139,9 +139,9 @@ def test_a_collapsed_hinge_is_inert_and_its_reverse_pass_stays_finite_in_float32
 
 
 def test_a_hinge_with_a_collapsed_wing_is_inert_and_its_reverse_pass_stays_finite_in_float32():
-    """A wing collapsed onto the edge's end (1e-7 mm from it, beside a 5 mm edge: two ring
-    particles of the orbicularis oris placed on one surface point, the pair then one sample
-    apart around the ring) has no dihedral angle at float32 precision: its normal points
+    """A wing collapsed onto the edge's end (1e-7 mm from it, beside a 5 mm edge: two
+    particles placed on one surface point, as four pairs are in the default head's orbicularis
+    oris and depressor labii inferioris) has no dihedral angle at float32 precision: its normal points
     wherever the rounding does. The hinge must be inert, and the reverse pass of its projection
     finite. Judged by the edge and the normals alone it was active, and the default head's
     float32 reverse pass through the rig at rest came out NaN once the modiolus moved to the
