@@ -56,10 +56,17 @@ def main():
     from jaxface.testing import shared_path
 
     dt = jnp.float32 if args.dtype == "float32" else jnp.float64
-    f = load_ict_face(shared_path("data", "ict", "ict_face.npz", pytest_skip=False),
-                      shared_path("data", "bosphorus_style", "truth.json", pytest_skip=False))
-    res = {"machine": platform.processor() or platform.machine(), "cpus": os.cpu_count(),
-           "backend": jax.default_backend(), "dtype": args.dtype, "vertices": f.skin.n_vertices}
+    f = load_ict_face(
+        shared_path("data", "ict", "ict_face.npz", pytest_skip=False),
+        shared_path("data", "bosphorus_style", "truth.json", pytest_skip=False),
+    )
+    res = {
+        "machine": platform.processor() or platform.machine(),
+        "cpus": os.cpu_count(),
+        "backend": jax.default_backend(),
+        "dtype": args.dtype,
+        "vertices": f.skin.n_vertices,
+    }
     t0 = time.perf_counter()
     pbd = build_rig(f.skin, f.landmarks, upper_teeth=f.upper_teeth, lower_teeth=f.lower_teeth)
     res["pbd_build_s"] = time.perf_counter() - t0
@@ -70,19 +77,35 @@ def main():
     a, jaw, _ = facs.aus_to_controls({"AU12": 1.0, "AU6": 1.0, "AU26": 0.6}, pbd.muscle_names)
     a = jnp.asarray(a, dt)
     jaw = JawPose(jnp.asarray(jaw.pitch_deg, dt), jnp.asarray(0.0, dt), jnp.asarray(0.0, dt))
-    ltw = ltw if args.dtype == "float64" else jax.tree_util.tree_map(
-        lambda x: x.astype(dt) if hasattr(x, "dtype") and jnp.issubdtype(x.dtype, jnp.floating) else x, ltw)
+    ltw = (
+        ltw
+        if args.dtype == "float64"
+        else jax.tree_util.tree_map(
+            lambda x: (
+                x.astype(dt) if hasattr(x, "dtype") and jnp.issubdtype(x.dtype, jnp.floating) else x
+            ),
+            ltw,
+        )
+    )
 
     res.update(pbd_muscle_sweeps=pbd.muscles.iterations, pbd_skin_sweeps=pbd.skin.iterations)
     c, mn, md = _time(synthesize, pbd, a, jaw, repeat=args.repeat)
     res.update(pbd_compile_s=c, pbd_ms_min=mn, pbd_ms_median=md)
     x = synthesize(pbd, a, jaw)
-    ref = synthesize(pbd.with_iterations(muscles=10 * pbd.muscles.iterations, skin=10 * pbd.skin.iterations), a, jaw)
+    ref = synthesize(
+        pbd.with_iterations(muscles=10 * pbd.muscles.iterations, skin=10 * pbd.skin.iterations),
+        a,
+        jaw,
+    )
     res["pbd_convergence_mm_vs_10x"] = float(jnp.abs(x - ref).max())
     res["pbd_motion_mm"] = float(jnp.linalg.norm(x - pbd.rest, axis=1).max())
 
-    res.update(ltw_nodes=3 * ltw.n_vertices, ltw_springs=int(ltw.model.tissue.spring_i.shape[0]),
-               ltw_elements=int(ltw.model.tissue.elements.shape[0]), ltw_steps=ltw.n_steps)
+    res.update(
+        ltw_nodes=3 * ltw.n_vertices,
+        ltw_springs=int(ltw.model.tissue.spring_i.shape[0]),
+        ltw_elements=int(ltw.model.tissue.elements.shape[0]),
+        ltw_steps=ltw.n_steps,
+    )
     c, mn, md = _time(synthesize_ltw, ltw, a, jaw, repeat=args.repeat)
     res.update(ltw_compile_s=c, ltw_ms_min=mn, ltw_ms_median=md, ltw_ms_per_step=mn / ltw.n_steps)
     x = synthesize_ltw(ltw, a, jaw)

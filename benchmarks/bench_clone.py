@@ -49,15 +49,23 @@ def load_ict():
     from jaxface.testing import shared_path
 
     d = np.load(shared_path("data", "ict", "ict_face.npz", pytest_skip=False))
-    truth = json.loads(shared_path("data", "bosphorus_style", "truth.json", pytest_skip=False).read_text())
+    truth = json.loads(
+        shared_path("data", "bosphorus_style", "truth.json", pytest_skip=False).read_text()
+    )
     tri, grp = d["triangles"], d["triangle_group"]
     nv = 9409
     F = tri[(grp == 0) & (tri < nv).all(1)].astype(np.int64)
     lm = truth["landmark_vertex_ids_ict"]
-    return dict(V=d["neutral"][:nv].astype(float), F=F, E=d["expression_deltas"][:, :nv].astype(float),
-                names=[str(n) for n in d["expression_names"]],
-                ID=d["identity_deltas"][:, :nv].astype(float), lm_names=list(lm),
-                lm_ids=np.array(list(lm.values())), truth=truth)
+    return dict(
+        V=d["neutral"][:nv].astype(float),
+        F=F,
+        E=d["expression_deltas"][:, :nv].astype(float),
+        names=[str(n) for n in d["expression_names"]],
+        ID=d["identity_deltas"][:, :nv].astype(float),
+        lm_names=list(lm),
+        lm_ids=np.array(list(lm.values())),
+        truth=truth,
+    )
 
 
 def resample_face(V, F, spacing, E, jaw):
@@ -75,8 +83,9 @@ def resample_face(V, F, spacing, E, jaw):
     ys = np.arange(75, -75 - 1e-9, -spacing)
     X, Y = np.meshgrid(xs, ys)
     o = np.stack([X.ravel(), Y.ravel(), np.full(X.size, 400.0)], 1)
-    hit, tri, bary, _ = cast_segments(o, np.tile([0, 0, -1.0], (len(o), 1)), 600.0, V, F,
-                                      two_sided=False, normal_dot_min=None)
+    hit, tri, bary, _ = cast_segments(
+        o, np.tile([0, 0, -1.0], (len(o), 1)), 600.0, V, F, two_sided=False, normal_dot_min=None
+    )
     xyz = np.zeros((len(o), 3))
     xyz[hit] = np.einsum("kj,kjd->kd", bary[hit], V[F[tri[hit]]])
     T = grid_triangles(xyz.reshape(*X.shape, 3), hit.reshape(X.shape), spacing=spacing)
@@ -94,7 +103,9 @@ def resample_face(V, F, spacing, E, jaw):
     tris = np.searchsorted(keep, flat)
     n = keep.size
     e = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
-    _, lab = connected_components(coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)), directed=False)
+    _, lab = connected_components(
+        coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)), directed=False
+    )
     big = np.argmax(np.bincount(lab))
     tris = tris[(lab[tris] == big).all(1)]
     used = np.unique(tris)
@@ -114,7 +125,9 @@ def spacing_for(V, F, E, jaw, n_target):
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="fewer cases (for a smoke run)")
-    ap.add_argument("--full", action="store_true", help="also the 9409-vertex ICT face and the bs901 scan")
+    ap.add_argument(
+        "--full", action="store_true", help="also the 9409-vertex ICT face and the bs901 scan"
+    )
     ap.add_argument("--seed", type=int, default=0, help="identity weights seed")
     args = ap.parse_args()
     warnings.simplefilter("ignore")
@@ -131,11 +144,16 @@ def main() -> None:
     lm_src = Landmarks(ict["lm_names"], V[ict["lm_ids"]])
     lm_id = Landmarks(ict["lm_names"], VI[ict["lm_ids"]])
     results: dict = {
-        "machine": {"platform": platform.platform(), "cpus": os.cpu_count(),
-                    "loadavg_at_start": os.getloadavg()},
+        "machine": {
+            "platform": platform.platform(),
+            "cpus": os.cpu_count(),
+            "loadavg_at_start": os.getloadavg(),
+        },
         "n_morph_targets": int(E.shape[0]),
         "identity_weights": w.tolist(),
-        "self_clone": [], "cross_identity": [], "full": [],
+        "self_clone": [],
+        "cross_identity": [],
+        "full": [],
     }
 
     sizes = {"data": 367, "kevin": 498, "joakim": 909, "beta": 2197}
@@ -148,7 +166,9 @@ def main() -> None:
         meshes[key + "_id"] = (s,) + resample_face(VI, F, s, E, jaw)
 
     # ---------------------------------------------------------------- self-clone
-    print(f"self-clone (thesis Table 6.2: 0.028 % - 0.28 %), eq. 6.1 over all {E.shape[0]} ICT expressions")
+    print(
+        f"self-clone (thesis Table 6.2: 0.028 % - 0.28 %), eq. 6.1 over all {E.shape[0]} ICT expressions"
+    )
     print(f"{'face':<10}{'verts':>7}{'e (6.1) %':>12}{'disp err %':>12}{'Is':>4}{'TT s':>8}")
     for key in sizes:
         s, mesh, interp, _ = meshes[key]
@@ -159,20 +179,44 @@ def main() -> None:
         e = clone.clone_error(mesh.vertices + ES, r.targets)
         de = clone.delta_error(ES, r.deltas)
         print(f"{key:<10}{mesh.n_vertices:>7}{e:>12.2e}{de:>12.2e}{r.fit.iterations:>4}{tt:>8.2f}")
-        results["self_clone"].append(dict(face=key, vertices=mesh.n_vertices, spacing_mm=s, e_percent=e,
-                                          disp_err_percent=de, iterations=r.fit.iterations, seconds=tt))
+        results["self_clone"].append(
+            dict(
+                face=key,
+                vertices=mesh.n_vertices,
+                spacing_mm=s,
+                e_percent=e,
+                disp_err_percent=de,
+                iterations=r.fit.iterations,
+                seconds=tt,
+            )
+        )
 
     # ---------------------------------------------------------------- cross identity
-    pairs = [("beta", "data"), ("data", "beta"), ("joakim", "data"), ("data", "joakim"),
-             ("beta", "kevin"), ("kevin", "beta")]
-    thesis = {("beta", "data"): (4.0, 1.0, 5.0), ("data", "beta"): (1.3, 3.6, 5.0),
-              ("joakim", "data"): (4.4, 1.0, 5.4), ("data", "joakim"): (1.0, 1.2, 2.3),
-              ("beta", "kevin"): (4.6, 0.8, 5.4), ("kevin", "beta"): (10.6, 0.6, 11.3)}
+    pairs = [
+        ("beta", "data"),
+        ("data", "beta"),
+        ("joakim", "data"),
+        ("data", "joakim"),
+        ("beta", "kevin"),
+        ("kevin", "beta"),
+    ]
+    thesis = {
+        ("beta", "data"): (4.0, 1.0, 5.0),
+        ("data", "beta"): (1.3, 3.6, 5.0),
+        ("joakim", "data"): (4.4, 1.0, 5.4),
+        ("data", "joakim"): (1.0, 1.2, 2.3),
+        ("beta", "kevin"): (4.6, 0.8, 5.4),
+        ("kevin", "beta"): (10.6, 0.6, 11.3),
+    }
     pairs = [p for p in pairs if p[0] in sizes and p[1] in sizes]
-    print(f"\nICT generic -> ICT identity, thesis-like sizes ({E.shape[0]} morph targets; thesis: 84)")
-    hdr = (f"{'source->target':<16}{'Vs':>6}{'Vt':>6}{'MVs':>6}{'CPs':>6}{'Is':>4}{'RT s':>7}{'CT s':>7}"
-           f"{'TT s':>7}{'CPU s':>7}{'thesis TT':>10}{'e6.1 %':>8}{'disp %':>8}{'rough %':>8}{'affine %':>9}"
-           f"{'no-ref %':>9}{'no-ref TT':>10}{'floor %':>8}")
+    print(
+        f"\nICT generic -> ICT identity, thesis-like sizes ({E.shape[0]} morph targets; thesis: 84)"
+    )
+    hdr = (
+        f"{'source->target':<16}{'Vs':>6}{'Vt':>6}{'MVs':>6}{'CPs':>6}{'Is':>4}{'RT s':>7}{'CT s':>7}"
+        f"{'TT s':>7}{'CPU s':>7}{'thesis TT':>10}{'e6.1 %':>8}{'disp %':>8}{'rough %':>8}{'affine %':>9}"
+        f"{'no-ref %':>9}{'no-ref TT':>10}{'floor %':>8}"
+    )
     print(hdr)
     for a, b in pairs:
         _, src, isrc, _ = meshes[a]
@@ -182,10 +226,18 @@ def main() -> None:
         r = clone.clone_motion(src, tgt, lm_src, lm_id, source_deltas=ES)
         cpu = time.process_time() - c
         # the same fit, other transfers of the displacements
-        ra = clone.apply_clone(r.fit, r.mapping, src.triangles, tgt.vertices, ES, r.moving,
-                               transfer="affine") - tgt.vertices
-        rr = clone.apply_clone(r.fit, r.mapping, src.triangles, tgt.vertices, ES, r.moving,
-                               transfer="rough") - tgt.vertices
+        ra = (
+            clone.apply_clone(
+                r.fit, r.mapping, src.triangles, tgt.vertices, ES, r.moving, transfer="affine"
+            )
+            - tgt.vertices
+        )
+        rr = (
+            clone.apply_clone(
+                r.fit, r.mapping, src.triangles, tgt.vertices, ES, r.moving, transfer="rough"
+            )
+            - tgt.vertices
+        )
         # no refinement at all (landmarks + contours only)
         c0 = time.process_time()
         r0 = clone.clone_motion(src, tgt, lm_src, lm_id, source_deltas=ES, max_iterations=0)
@@ -193,7 +245,9 @@ def main() -> None:
         # floor: copy the source displacements through the true correspondence
         tp = np.einsum("kj,kjd->kd", tbary, V[F[ttri]])
         sp, _ = src.closest_points(tp)
-        floor = np.einsum("vk,tvkd->tvd", np.asarray(sp.bary), ES[:, src.triangles[np.asarray(sp.tri)]])
+        floor = np.einsum(
+            "vk,tvkd->tvd", np.asarray(sp.bary), ES[:, src.triangles[np.asarray(sp.tri)]]
+        )
         e = clone.clone_error(tgt.vertices + ET, r.targets)
         de = clone.delta_error(ET, r.deltas)
         dea = clone.delta_error(ET, ra)
@@ -202,18 +256,39 @@ def main() -> None:
         fl = clone.delta_error(ET, floor)
         ft = r.timings
         th = thesis[(a, b)]
-        print(f"{a + '->' + b:<16}{src.n_vertices:>6}{tgt.n_vertices:>6}{int(r.fit.movable.sum()):>6}"
-              f"{len(r.fit.src_points):>6}{r.fit.iterations:>4}{ft['fit']:>7.2f}{ft['clone']:>7.2f}"
-              f"{ft['total']:>7.2f}{cpu:>7.2f}{th[2]:>10.1f}{e:>8.3f}{de:>8.2f}{der:>8.2f}{dea:>9.2f}"
-              f"{de0:>9.2f}{r0.timings['total']:>10.2f}{fl:>8.2f}")
-        results["cross_identity"].append(dict(
-            source=a, target=b, Vs=src.n_vertices, Vt=tgt.n_vertices, MVs=int(r.fit.movable.sum()),
-            CPs=len(r.fit.src_points), Is=r.fit.iterations, RT=ft["fit"], CT=ft["clone"], TT=ft["total"],
-            cpu_seconds=cpu, thesis_RT_CT_TT=th, e_percent=e, disp_err_percent=de,
-            disp_err_rough_percent=der, disp_err_affine_percent=dea, disp_err_no_refinement_percent=de0,
-            no_refinement_TT=r0.timings["total"], no_refinement_cpu_seconds=cpu0,
-            floor_percent=fl, contours_used=r.fit.contours_used, contours_skipped=r.fit.contours_skipped,
-            history=r.fit.history))
+        print(
+            f"{a + '->' + b:<16}{src.n_vertices:>6}{tgt.n_vertices:>6}{int(r.fit.movable.sum()):>6}"
+            f"{len(r.fit.src_points):>6}{r.fit.iterations:>4}{ft['fit']:>7.2f}{ft['clone']:>7.2f}"
+            f"{ft['total']:>7.2f}{cpu:>7.2f}{th[2]:>10.1f}{e:>8.3f}{de:>8.2f}{der:>8.2f}{dea:>9.2f}"
+            f"{de0:>9.2f}{r0.timings['total']:>10.2f}{fl:>8.2f}"
+        )
+        results["cross_identity"].append(
+            dict(
+                source=a,
+                target=b,
+                Vs=src.n_vertices,
+                Vt=tgt.n_vertices,
+                MVs=int(r.fit.movable.sum()),
+                CPs=len(r.fit.src_points),
+                Is=r.fit.iterations,
+                RT=ft["fit"],
+                CT=ft["clone"],
+                TT=ft["total"],
+                cpu_seconds=cpu,
+                thesis_RT_CT_TT=th,
+                e_percent=e,
+                disp_err_percent=de,
+                disp_err_rough_percent=der,
+                disp_err_affine_percent=dea,
+                disp_err_no_refinement_percent=de0,
+                no_refinement_TT=r0.timings["total"],
+                no_refinement_cpu_seconds=cpu0,
+                floor_percent=fl,
+                contours_used=r.fit.contours_used,
+                contours_skipped=r.fit.contours_skipped,
+                history=r.fit.history,
+            )
+        )
 
     if args.full:
         print("\nfull resolution (9409 vertices)")
@@ -226,23 +301,40 @@ def main() -> None:
         results["full"].append(dict(case="ict_self", e_percent=e, seconds=tt))
         for max_it in (0, 5):
             t = time.perf_counter()
-            r = clone.clone_motion(mesh, TriMesh(VI, F, validate=False), lm_src, lm_id,
-                                   source_deltas=E, max_iterations=max_it)
+            r = clone.clone_motion(
+                mesh,
+                TriMesh(VI, F, validate=False),
+                lm_src,
+                lm_id,
+                source_deltas=E,
+                max_iterations=max_it,
+            )
             tt = time.perf_counter() - t
             e = clone.clone_error(VI + E, r.targets)
             de = clone.delta_error(E, r.deltas)
-            print(f"  ICT -> identity (max_iterations={max_it}): e (6.1) = {e:.3f} %, displacement "
-                  f"error {de:.2f} %, {tt:.1f} s, {len(r.fit.src_points)} pairs")
-            results["full"].append(dict(case=f"ict_identity_it{max_it}", e_percent=e, disp_err_percent=de,
-                                        seconds=tt, pairs=len(r.fit.src_points)))
+            print(
+                f"  ICT -> identity (max_iterations={max_it}): e (6.1) = {e:.3f} %, displacement "
+                f"error {de:.2f} %, {tt:.1f} s, {len(r.fit.src_points)} pairs"
+            )
+            results["full"].append(
+                dict(
+                    case=f"ict_identity_it{max_it}",
+                    e_percent=e,
+                    disp_err_percent=de,
+                    seconds=tt,
+                    pairs=len(r.fit.src_points),
+                )
+            )
         bosphorus_case(ict, clone, results)
 
     out = Path(__file__).resolve().parent / "results" / "bench_clone.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     results["machine"]["loadavg_at_end"] = os.getloadavg()
     out.write_text(json.dumps(results, indent=1, default=float))
-    print(f"\nwrote {out}; load average {results['machine']['loadavg_at_start']} -> "
-          f"{results['machine']['loadavg_at_end']} on {results['machine']['cpus']} CPUs")
+    print(
+        f"\nwrote {out}; load average {results['machine']['loadavg_at_start']} -> "
+        f"{results['machine']['loadavg_at_end']} on {results['machine']['cpus']} CPUs"
+    )
 
 
 def bosphorus_case(ict, clone, results):
@@ -255,8 +347,10 @@ def bosphorus_case(ict, clone, results):
     V, F, E, names = ict["V"], ict["F"], ict["E"], ict["names"]
     scan = load_scan(shared_path("data", "bosphorus_style", "bs901_N_N_0.bnt", pytest_skip=False))
     tgt = scan.to_mesh()
-    truth_mesh = load_mesh(shared_path("data", "bosphorus_style", "bs901_N_N_0.truth.ply", pytest_skip=False),
-                           validate=False)
+    truth_mesh = load_mesh(
+        shared_path("data", "bosphorus_style", "bs901_N_N_0.truth.ply", pytest_skip=False),
+        validate=False,
+    )
     rig = ict["truth"]["bs901_N_N_0"]["rigid"]
     p, y = np.radians(rig["pitch"]), np.radians(rig["yaw"])
     Rx = np.array([[1, 0, 0], [0, np.cos(p), -np.sin(p)], [0, np.sin(p), np.cos(p)]])
@@ -277,13 +371,24 @@ def bosphorus_case(ict, clone, results):
     tt = time.perf_counter() - t
     de = clone.delta_error(ET[:, on_face], r.deltas[:, on_face])
     e = clone.clone_error((tgt.vertices + ET)[:, on_face], r.targets[:, on_face])
-    print(f"  ICT grid ({src.n_vertices} v) -> bs901 neutral .bnt scan ({tgt.n_vertices} v): "
-          f"e (6.1) = {e:.3f} %, displacement error {de:.2f} % over {int(on_face.sum())} scan vertices "
-          f"on the face, {tt:.1f} s (RT {r.timings['fit']:.1f}, CT {r.timings['clone']:.1f}), "
-          f"{r.fit.iterations} iterations; contours used {r.fit.contours_used}, skipped "
-          f"{r.fit.contours_skipped}")
-    results["full"].append(dict(case="bs901_scan", Vs=src.n_vertices, Vt=tgt.n_vertices, e_percent=e,
-                                disp_err_percent=de, seconds=tt, iterations=r.fit.iterations))
+    print(
+        f"  ICT grid ({src.n_vertices} v) -> bs901 neutral .bnt scan ({tgt.n_vertices} v): "
+        f"e (6.1) = {e:.3f} %, displacement error {de:.2f} % over {int(on_face.sum())} scan vertices "
+        f"on the face, {tt:.1f} s (RT {r.timings['fit']:.1f}, CT {r.timings['clone']:.1f}), "
+        f"{r.fit.iterations} iterations; contours used {r.fit.contours_used}, skipped "
+        f"{r.fit.contours_skipped}"
+    )
+    results["full"].append(
+        dict(
+            case="bs901_scan",
+            Vs=src.n_vertices,
+            Vt=tgt.n_vertices,
+            e_percent=e,
+            disp_err_percent=de,
+            seconds=tt,
+            iterations=r.fit.iterations,
+        )
+    )
 
 
 if __name__ == "__main__":

@@ -63,18 +63,31 @@ import numpy as np
 
 #: AUs named by each scan code (issue 7: "AU12 for LFAU_12, AU1+2+5+26 for E_SURPRISE")
 CODE_AUS = {
-    "UFAU_1": ["AU1"], "UFAU_2": ["AU2"], "UFAU_4": ["AU4"], "LFAU_9": ["AU9"], "LFAU_12": ["AU12"],
-    "LFAU_12L": ["AU12"], "LFAU_20": ["AU20"], "LFAU_26": ["AU26"], "E_HAPPY": ["AU6", "AU12"],
-    "E_SURPRISE": ["AU1", "AU2", "AU5", "AU26"], "N_N": [],
+    "UFAU_1": ["AU1"],
+    "UFAU_2": ["AU2"],
+    "UFAU_4": ["AU4"],
+    "LFAU_9": ["AU9"],
+    "LFAU_12": ["AU12"],
+    "LFAU_12L": ["AU12"],
+    "LFAU_20": ["AU20"],
+    "LFAU_26": ["AU26"],
+    "E_HAPPY": ["AU6", "AU12"],
+    "E_SURPRISE": ["AU1", "AU2", "AU5", "AU26"],
+    "N_N": [],
 }
 
 
 def _machine():
     import jax
 
-    return {"platform": platform.platform(), "cpus": os.cpu_count(), "load_avg": list(os.getloadavg()),
-            "jax": jax.__version__, "backend": jax.default_backend(),
-            "devices": [getattr(d, "device_kind", str(d)) for d in jax.devices()]}
+    return {
+        "platform": platform.platform(),
+        "cpus": os.cpu_count(),
+        "load_avg": list(os.getloadavg()),
+        "jax": jax.__version__,
+        "backend": jax.default_backend(),
+        "devices": [getattr(d, "device_kind", str(d)) for d in jax.devices()],
+    }
 
 
 def _au_ranks(aus: dict, expected: list[str]) -> dict:
@@ -84,7 +97,11 @@ def _au_ranks(aus: dict, expected: list[str]) -> dict:
 
 
 def _stats(d):
-    return {k: (None if v is None else float(v)) for k, v in d.to_dict().items()} if hasattr(d, "to_dict") else d
+    return (
+        {k: (None if v is None else float(v)) for k, v in d.to_dict().items()}
+        if hasattr(d, "to_dict")
+        else d
+    )
 
 
 def _b2(truth, subject, r, stem: str, subject_id: str):
@@ -95,15 +112,27 @@ def _b2(truth, subject, r, stem: str, subject_id: str):
     au = b2_action_unit(stem)
     if au is None:
         return None
-    code = stem[len(subject_id) + 1:]
+    code = stem[len(subject_id) + 1 :]
     for src in truth.subjects():
         if src != subject_id and f"{src}_{code}" in truth.records:
             t = time.perf_counter()
-            b2 = baseline_b2(subject.registration, r.scan, r.alignment,
-                             truth.scan(truth.neutral_stem(src)), truth.scan(f"{src}_{code}"), au)
+            b2 = baseline_b2(
+                subject.registration,
+                r.scan,
+                r.alignment,
+                truth.scan(truth.neutral_stem(src)),
+                truth.scan(f"{src}_{code}"),
+                au,
+            )
             ev = evaluate_against_truth(b2.mesh, truth, stem)
-            return {"source": src, "au": au, "magnitude": b2.magnitude, "mean": ev.mean,
-                    "error": ev.to_dict()["error"], "seconds": time.perf_counter() - t}
+            return {
+                "source": src,
+                "au": au,
+                "magnitude": b2.magnitude,
+                "mean": ev.mean,
+                "error": ev.to_dict()["error"],
+                "seconds": time.perf_counter() - t,
+            }
     return None
 
 
@@ -133,8 +162,13 @@ def error_figure(subjects: list[tuple[str, dict]], path: Path) -> Path:
     import matplotlib.pyplot as plt
 
     codes = [c for c in CODE_AUS if any(c in maps for _, maps in subjects)]
-    fig, axs = plt.subplots(len(subjects), len(codes), figsize=(1.9 * len(codes) + 1.2, 2.4 * len(subjects) + 0.5),
-                            squeeze=False, layout="constrained")
+    fig, axs = plt.subplots(
+        len(subjects),
+        len(codes),
+        figsize=(1.9 * len(codes) + 1.2, 2.4 * len(subjects) + 0.5),
+        squeeze=False,
+        layout="constrained",
+    )
     xy = np.concatenate([e["xy"] for _, maps in subjects for e in maps.values()])
     lo, hi = xy.min(axis=0) - 3.0, xy.max(axis=0) + 3.0  # one scale for every panel
     sc = None
@@ -146,15 +180,27 @@ def error_figure(subjects: list[tuple[str, dict]], path: Path) -> Path:
                 ax.set_visible(False)
                 continue
             e = maps[code]
-            sc = ax.scatter(e["xy"][:, 0], e["xy"][:, 1], c=e["signed"], cmap="coolwarm", vmin=-3, vmax=3,
-                            s=1.0, linewidths=0, rasterized=True)
+            sc = ax.scatter(
+                e["xy"][:, 0],
+                e["xy"][:, 1],
+                c=e["signed"],
+                cmap="coolwarm",
+                vmin=-3,
+                vmax=3,
+                s=1.0,
+                linewidths=0,
+                rasterized=True,
+            )
             ax.set_xlim(lo[0], hi[0])
             ax.set_ylim(lo[1], hi[1])
             ax.set_aspect("equal")
             ax.set_title(f"{sid} {code}\nmean {e['mean']:.2f} mm", fontsize=8)
     if sc is not None:
         fig.colorbar(sc, ax=axs, shrink=0.8, label="signed error, mm (+ = fit in front)")
-    fig.suptitle("Fit error against the truth meshes over each scan's evaluation region (front view)", fontsize=10)
+    fig.suptitle(
+        "Fit error against the truth meshes over each scan's evaluation region (front view)",
+        fontsize=10,
+    )
     fig.savefig(path, dpi=90)
     plt.close(fig)
     return path
@@ -172,7 +218,9 @@ def _jacobian_timing(fit, repeats: int = 20) -> dict:
     a = jax.numpy.full(M, 0.3)
     out = {}
     for label, fn in (("rule", _data_vector), ("plain", _data_vector_plain)):
-        jac = jax.jit(jax.jacfwd(lambda a_, j_, r_, p_: fn(a_, j_, r_, p_, True), argnums=(0, 1, 2)))
+        jac = jax.jit(
+            jax.jacfwd(lambda a_, j_, r_, p_: fn(a_, j_, r_, p_, True), argnums=(0, 1, 2))
+        )
         jax.block_until_ready(jac(a, y["jaw"], y["rigid"], pts))
         t = time.perf_counter()
         for _ in range(repeats):
@@ -183,11 +231,19 @@ def _jacobian_timing(fit, repeats: int = 20) -> dict:
     return out
 
 
-def bench_subject(truth, subject_id: str, opt, *, single: bool, subject_options=None,
-                  b2_baseline: bool = True, warm_batch: bool = False, truth_as_scan: bool = False) -> dict:
-    from jaxface.fit.evaluation import evaluate_against_truth
+def bench_subject(
+    truth,
+    subject_id: str,
+    opt,
+    *,
+    single: bool,
+    subject_options=None,
+    b2_baseline: bool = True,
+    warm_batch: bool = False,
+    truth_as_scan: bool = False,
+) -> dict:
+    from jaxface.fit.evaluation import ICT_FACE_VERTICES, evaluate_against_truth
     from jaxface.fit.pipeline import fit_expressions, prepare_subject
-    from jaxface.fit.evaluation import ICT_FACE_VERTICES
     from jaxface.io import Scan
 
     def expression_scan(stem):
@@ -202,14 +258,21 @@ def bench_subject(truth, subject_id: str, opt, *, single: bool, subject_options=
         v = truth.truth_vertices(stem)[:ICT_FACE_VERTICES]
         f = np.asarray(truth.truth_mesh(stem).triangles)
         f = f[(f < ICT_FACE_VERTICES).all(axis=1)]
-        return Scan(points=v, triangles=f, landmarks=sc.landmarks, path=truth.path(stem, ".truth.ply"))
+        return Scan(
+            points=v, triangles=f, landmarks=sc.landmarks, path=truth.path(stem, ".truth.ply")
+        )
 
     t = time.perf_counter()
     c = time.process_time()
     S = prepare_subject(truth.scan(truth.neutral_stem(subject_id)), options=subject_options)
-    build = {"wall_s": time.perf_counter() - t, "cpu_s": time.process_time() - c, **S.timings,
-             "n_vertices": int(len(S.forward.rest)), "n_controls": S.forward.n_controls,
-             "n_fit_vertices": int(len(S.fit_ids))}
+    build = {
+        "wall_s": time.perf_counter() - t,
+        "cpu_s": time.process_time() - c,
+        **S.timings,
+        "n_vertices": int(len(S.forward.rest)),
+        "n_controls": S.forward.n_controls,
+        "n_fit_vertices": int(len(S.fit_ids)),
+    }
     stems = truth.stems(subject_id)
     out = {"subject": subject_id, "build": build, "scans": []}
     timing = {}
@@ -221,15 +284,26 @@ def bench_subject(truth, subject_id: str, opt, *, single: bool, subject_options=
             t = time.perf_counter()
             c = time.process_time()
             (r,) = fit_expressions(S, [expression_scan(stem)], options=opt)
-            timing[f"single_{label}"] = {"scan": stem, "wall_s": time.perf_counter() - t,
-                                         "cpu_s": time.process_time() - c, "solver_s": r.fit.seconds}
-            print(f"  single {label} ({stem}): {timing[f'single_{label}']['wall_s']:.1f} s", flush=True)
+            timing[f"single_{label}"] = {
+                "scan": stem,
+                "wall_s": time.perf_counter() - t,
+                "cpu_s": time.process_time() - c,
+                "solver_s": r.fit.seconds,
+            }
+            print(
+                f"  single {label} ({stem}): {timing[f'single_{label}']['wall_s']:.1f} s",
+                flush=True,
+            )
     t = time.perf_counter()
     c = time.process_time()
     res = fit_expressions(S, [expression_scan(s) for s in stems], options=opt)
     wall = time.perf_counter() - t
-    timing["batch"] = {"n_scans": len(stems), "wall_s": wall, "cpu_s": time.process_time() - c,
-                       "per_scan_s": wall / len(stems)}
+    timing["batch"] = {
+        "n_scans": len(stems),
+        "wall_s": wall,
+        "cpu_s": time.process_time() - c,
+        "per_scan_s": wall / len(stems),
+    }
     print(f"  batch of {len(stems)}: {wall:.1f} s ({wall / len(stems):.2f} s per scan)", flush=True)
     if warm_batch:
         # the same batch again: what a batch costs once its solves are compiled (on an
@@ -238,9 +312,15 @@ def bench_subject(truth, subject_id: str, opt, *, single: bool, subject_options=
         c = time.process_time()
         fit_expressions(S, [expression_scan(s) for s in stems], options=opt)
         w2 = time.perf_counter() - t
-        timing["batch_warm"] = {"n_scans": len(stems), "wall_s": w2, "cpu_s": time.process_time() - c,
-                                "per_scan_s": w2 / len(stems)}
-        print(f"  batch again (compiled): {w2:.1f} s ({w2 / len(stems):.2f} s per scan)", flush=True)
+        timing["batch_warm"] = {
+            "n_scans": len(stems),
+            "wall_s": w2,
+            "cpu_s": time.process_time() - c,
+            "per_scan_s": w2 / len(stems),
+        }
+        print(
+            f"  batch again (compiled): {w2:.1f} s ({w2 / len(stems):.2f} s per scan)", flush=True
+        )
     timing["jacobian"] = _jacobian_timing(res[0].fit)
     out["timing"] = timing
     maps = {}
@@ -253,13 +333,22 @@ def bench_subject(truth, subject_id: str, opt, *, single: bool, subject_options=
         exp = CODE_AUS.get(rec.code, [])
         b2 = _b2(truth, S, r, stem, subject_id) if b2_baseline else None
         row = {
-            "stem": stem, "code": rec.code, "n_region": ev.n_region,
-            "fit": ev.to_dict()["error"], "B0": b0.to_dict()["error"], "B1": b1.to_dict()["error"],
-            "fit_mean": ev.mean, "B0_mean": b0.mean, "B1_mean": b1.mean, "B2": b2,
+            "stem": stem,
+            "code": rec.code,
+            "n_region": ev.n_region,
+            "fit": ev.to_dict()["error"],
+            "B0": b0.to_dict()["error"],
+            "B1": b1.to_dict()["error"],
+            "fit_mean": ev.mean,
+            "B0_mean": b0.mean,
+            "B1_mean": b1.mean,
+            "B2": b2,
             "B2_mean": None if b2 is None else b2["mean"],
             "ratio_B0_over_fit": b0.mean / ev.mean if ev.mean > 0 else None,
             "scan_to_fit_mean": r.metrics.scan_to_fit["all"].mean,
-            "status": r.status, "steps": r.fit.steps, "jaw": r.jaw,
+            "status": r.status,
+            "steps": r.fit.steps,
+            "jaw": r.jaw,
             "rigid_correction": [float(v) for v in r.fit.rigid],
             "jaw_starts": r.fit.starts,
             "au_ranks": _au_ranks(r.au_intensities, exp),
@@ -283,11 +372,19 @@ def bench_subject(truth, subject_id: str, opt, *, single: bool, subject_options=
         for s in stems:
             fit_expressions(S, [expression_scan(s)], options=opt)
         w1 = time.perf_counter() - t
-        timing["singles"] = {"n_scans": len(stems), "wall_s": w1, "cpu_s": time.process_time() - c,
-                             "per_scan_s": w1 / len(stems), "singles_over_batch": w1 / wall}
+        timing["singles"] = {
+            "n_scans": len(stems),
+            "wall_s": w1,
+            "cpu_s": time.process_time() - c,
+            "per_scan_s": w1 / len(stems),
+            "singles_over_batch": w1 / wall,
+        }
         if warm_batch:
             timing["singles"]["singles_over_warm_batch"] = w1 / timing["batch_warm"]["wall_s"]
-        print(f"  singles: {w1 / len(stems):.2f} s per scan, singles/batch {w1 / wall:.2f}", flush=True)
+        print(
+            f"  singles: {w1 / len(stems):.2f} s per scan, singles/batch {w1 / wall:.2f}",
+            flush=True,
+        )
     out["error_maps"] = maps  # drawn by main(), not written to the JSON
     return out
 
@@ -311,18 +408,29 @@ def round_trip(which: str, opt_kw: dict) -> dict:
         from jaxface.anatomy.ict import load_ict_face
         from jaxface.testing import shared_path
 
-        ict = load_ict_face(shared_path("data", "ict", "ict_face.npz"),
-                            shared_path("data", "bosphorus_style", "truth.json"))
-        rig = build_rig(ict.skin, ict.landmarks, upper_teeth=ict.upper_teeth, lower_teeth=ict.lower_teeth)
+        ict = load_ict_face(
+            shared_path("data", "ict", "ict_face.npz"),
+            shared_path("data", "bosphorus_style", "truth.json"),
+        )
+        rig = build_rig(
+            ict.skin, ict.landmarks, upper_teeth=ict.upper_teeth, lower_teeth=ict.lower_teeth
+        )
         face_mask = None
     bound = SkinLandmarks.of_rig(rig)
 
     def scan_of(x):
         return scan_skin(x, bound)
 
-    truth_acts = {"zygomaticus_major_L": 0.6, "zygomaticus_major_R": 0.45, "frontalis_medial_L": 0.5,
-                  "frontalis_medial_R": 0.5, "corrugator_R": 0.3, "orbicularis_oris": 0.25,
-                  "depressor_anguli_oris_L": 0.4, "levator_labii_superioris_alaeque_nasi_R": 0.35}
+    truth_acts = {
+        "zygomaticus_major_L": 0.6,
+        "zygomaticus_major_R": 0.45,
+        "frontalis_medial_L": 0.5,
+        "frontalis_medial_R": 0.5,
+        "corrugator_R": 0.3,
+        "orbicularis_oris": 0.25,
+        "depressor_anguli_oris_L": 0.4,
+        "levator_labii_superioris_alaeque_nasi_R": 0.35,
+    }
     truth_jaw = (6.0, 1.0, 1.0)
     neutral = scan_of(np.asarray(rig.rest))
     a = rig.activations(truth_acts)
@@ -344,18 +452,32 @@ def round_trip(which: str, opt_kw: dict) -> dict:
     fm = subject.face_mask
     surf = np.linalg.norm(np.asarray(res.fitted.vertices)[fm] - x[fm], axis=1)
     return {
-        "face": which, "build_s": build_s, "subject_s": subject.timings, "fit_s": fit_s,
-        "true_activations": truth_acts, "true_jaw": truth_jaw,
+        "face": which,
+        "build_s": build_s,
+        "subject_s": subject.timings,
+        "fit_s": fit_s,
+        "true_activations": truth_acts,
+        "true_jaw": truth_jaw,
         "scan_to_fit_mean": res.metrics.scan_to_fit["all"].mean,
-        "skin_vertex_error_mm": {"mean": float(surf.mean()), "median": float(np.median(surf)),
-                                 "p95": float(np.percentile(surf, 95))},
-        "jaw_fit": res.jaw, "jaw_error": [res.jaw["pitch_deg"] - truth_jaw[0], res.jaw["yaw_deg"] - truth_jaw[1],
-                                          res.jaw["protrusion_mm"] - truth_jaw[2]],
+        "skin_vertex_error_mm": {
+            "mean": float(surf.mean()),
+            "median": float(np.median(surf)),
+            "p95": float(np.percentile(surf, 95)),
+        },
+        "jaw_fit": res.jaw,
+        "jaw_error": [
+            res.jaw["pitch_deg"] - truth_jaw[0],
+            res.jaw["yaw_deg"] - truth_jaw[1],
+            res.jaw["protrusion_mm"] - truth_jaw[2],
+        ],
         "activation_error": err,
-        "max_activation_error_distinguishable": max((abs(err[n]) for n in distinguishable), default=None),
+        "max_activation_error_distinguishable": max(
+            (abs(err[n]) for n in distinguishable), default=None
+        ),
         "max_activation_error_all": max(abs(v) for v in err.values()),
         "distinguishable": distinguishable,
-        "status": res.status, "steps": res.fit.steps,
+        "status": res.status,
+        "steps": res.fit.steps,
         "conditioning": cond,
     }
 
@@ -364,32 +486,80 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--subjects", default="bs900,bs901")
     ap.add_argument("--no-round-trip", action="store_true")
-    ap.add_argument("--round-trip-ict", action="store_true", help="also run the round trip on the ICT face")
+    ap.add_argument(
+        "--round-trip-ict", action="store_true", help="also run the round trip on the ICT face"
+    )
     ap.add_argument("--no-single", action="store_true", help="skip the single-scan timings")
-    ap.add_argument("--warm-batch", action="store_true",
-                    help="fit the batch a second time, compiled (batch_warm, singles_over_warm_batch)")
-    ap.add_argument("--truth-as-scan", action="store_true",
-                    help="fit the exact truth meshes instead of the range scans (what the model can reach)")
-    ap.add_argument("--no-b2", action="store_true",
-                    help="skip baseline B2 (it needs the other subject's scans of the same code)")
-    ap.add_argument("--exact-steps", type=int, default=0, help="final LM steps through the exact rig")
-    ap.add_argument("--outer-iterations", type=int, default=None, help="correspondence refreshes (default: FitOptions')")
-    ap.add_argument("--restart-iterations", type=int, default=None,
-                    help="bound-flip restart iterations (default: FitOptions')")
-    ap.add_argument("--restart-when", choices=["unconverged", "saturated"], default=None,
-                    help="which fits with activations at 1 restart (default: FitOptions')")
-    ap.add_argument("--landmark-weight", type=float, default=None,
-                    help="weight of the landmark term (default: FitOptions')")
-    ap.add_argument("--motion-fraction", type=float, default=None,
-                    help="share of the scan points drawn from the expression's moving region (default: FitOptions')")
-    ap.add_argument("--robust-floor", default=None, metavar="FIRST,LAST",
-                    help="lower bound of the Tukey cut-off (mm), annealed from FIRST to LAST (default: FitOptions')")
-    ap.add_argument("--no-gradient-correction", action="store_true",
-                    help="fit without the exact-gradient correction of the inner solves")
-    ap.add_argument("--sweeps", default=None,
-                    help="the rig's quasi-static sweeps, MUSCLE/SKIN[/RHO] or a preset of jaxface synth "
-                         "--sweeps (default: build_rig's 32/8)")
-    ap.add_argument("--results", default=None, help="folder of the JSON and the picture (default benchmarks/results)")
+    ap.add_argument(
+        "--warm-batch",
+        action="store_true",
+        help="fit the batch a second time, compiled (batch_warm, singles_over_warm_batch)",
+    )
+    ap.add_argument(
+        "--truth-as-scan",
+        action="store_true",
+        help="fit the exact truth meshes instead of the range scans (what the model can reach)",
+    )
+    ap.add_argument(
+        "--no-b2",
+        action="store_true",
+        help="skip baseline B2 (it needs the other subject's scans of the same code)",
+    )
+    ap.add_argument(
+        "--exact-steps", type=int, default=0, help="final LM steps through the exact rig"
+    )
+    ap.add_argument(
+        "--outer-iterations",
+        type=int,
+        default=None,
+        help="correspondence refreshes (default: FitOptions')",
+    )
+    ap.add_argument(
+        "--restart-iterations",
+        type=int,
+        default=None,
+        help="bound-flip restart iterations (default: FitOptions')",
+    )
+    ap.add_argument(
+        "--restart-when",
+        choices=["unconverged", "saturated"],
+        default=None,
+        help="which fits with activations at 1 restart (default: FitOptions')",
+    )
+    ap.add_argument(
+        "--landmark-weight",
+        type=float,
+        default=None,
+        help="weight of the landmark term (default: FitOptions')",
+    )
+    ap.add_argument(
+        "--motion-fraction",
+        type=float,
+        default=None,
+        help="share of the scan points drawn from the expression's moving region (default: FitOptions')",
+    )
+    ap.add_argument(
+        "--robust-floor",
+        default=None,
+        metavar="FIRST,LAST",
+        help="lower bound of the Tukey cut-off (mm), annealed from FIRST to LAST (default: FitOptions')",
+    )
+    ap.add_argument(
+        "--no-gradient-correction",
+        action="store_true",
+        help="fit without the exact-gradient correction of the inner solves",
+    )
+    ap.add_argument(
+        "--sweeps",
+        default=None,
+        help="the rig's quasi-static sweeps, MUSCLE/SKIN[/RHO] or a preset of jaxface synth "
+        "--sweeps (default: build_rig's 32/8)",
+    )
+    ap.add_argument(
+        "--results",
+        default=None,
+        help="folder of the JSON and the picture (default benchmarks/results)",
+    )
     args = ap.parse_args()
     warnings.simplefilter("ignore")
     import jax
@@ -432,56 +602,105 @@ def main() -> None:
             ap.error(str(e))
         rig_kwargs = dict(muscle_iterations=m, skin_iterations=k, skin_chebyshev_rho=rho)
     subject_options = SubjectOptions(rig_kwargs=rig_kwargs)
-    report = {"machine": _machine(), "options": {k: (list(v) if isinstance(v, tuple) else v)
-                                                 for k, v in opt.__dict__.items()},
-              "rig_kwargs": rig_kwargs, "subjects": []}
+    report = {
+        "machine": _machine(),
+        "options": {k: (list(v) if isinstance(v, tuple) else v) for k, v in opt.__dict__.items()},
+        "rig_kwargs": rig_kwargs,
+        "subjects": [],
+    }
     error_maps = []
     for sid in [s for s in args.subjects.split(",") if s]:
         print(f"== subject {sid}", flush=True)
-        r = bench_subject(truth, sid, opt, single=not args.no_single, subject_options=subject_options,
-                          b2_baseline=not args.no_b2, warm_batch=args.warm_batch,
-                          truth_as_scan=args.truth_as_scan)
+        r = bench_subject(
+            truth,
+            sid,
+            opt,
+            single=not args.no_single,
+            subject_options=subject_options,
+            b2_baseline=not args.no_b2,
+            warm_batch=args.warm_batch,
+            truth_as_scan=args.truth_as_scan,
+        )
         error_maps.append((sid, r.pop("error_maps")))
         report["subjects"].append(r)
-        print(f"build {r['build']['wall_s']:.1f} s (register {r['build']['register_s']:.1f}, rig "
-              f"{r['build']['rig_s']:.1f}, compile {r['build']['compile_s']:.1f}, reduced model "
-              f"{r['build']['response_s']:.1f})")
+        print(
+            f"build {r['build']['wall_s']:.1f} s (register {r['build']['register_s']:.1f}, rig "
+            f"{r['build']['rig_s']:.1f}, compile {r['build']['compile_s']:.1f}, reduced model "
+            f"{r['build']['response_s']:.1f})"
+        )
         for k, v in r["timing"].items():
-            print(f"  time {k}: " + ", ".join(f"{a}={b:.2f}" if isinstance(b, float) else f"{a}={b}" for a, b in v.items()))
-        print(f"{'scan':22s} {'fit':>6s} {'B0':>6s} {'B1':>6s} {'B2':>6s} {'B0/fit':>6s} {'scan':>5s}  status        "
-              f"{'pitch':>5s}  AU ranks / top AUs")
+            print(
+                f"  time {k}: "
+                + ", ".join(
+                    f"{a}={b:.2f}" if isinstance(b, float) else f"{a}={b}" for a, b in v.items()
+                )
+            )
+        print(
+            f"{'scan':22s} {'fit':>6s} {'B0':>6s} {'B1':>6s} {'B2':>6s} {'B0/fit':>6s} {'scan':>5s}  status        "
+            f"{'pitch':>5s}  AU ranks / top AUs"
+        )
         for s in r["scans"]:
             b2s = "     -" if s["B2_mean"] is None else f"{s['B2_mean']:6.3f}"
-            print(f"{s['stem']:22s} {s['fit_mean']:6.3f} {s['B0_mean']:6.3f} {s['B1_mean']:6.3f} {b2s} "
-                  f"{(s['ratio_B0_over_fit'] or 0):6.2f} {s['scan_to_fit_mean']:5.2f}  {s['status'][:13]:13s} "
-                  f"{s['jaw']['pitch_deg']:5.1f}  {s['au_ranks']} {[(k, round(v, 2)) for k, v in s['top_aus'][:4]]}"
-                  + (f" 12L/12R {s['au12_sides']['AU12L']:.2f}/{s['au12_sides']['AU12R']:.2f}"
-                     if s["code"] == "LFAU_12L" else ""))
-            print(f"{'':22s} by skin motion: {s['au_motion_ranks']} "
-                  f"{[(k, round(v, 2)) for k, v in s['top_aus_by_motion_mm'][:4]]} mm"
-                  + (f" 12L/12R {s['au12_sides_motion_mm']['AU12L']:.2f}/{s['au12_sides_motion_mm']['AU12R']:.2f} mm"
-                     if s["code"] == "LFAU_12L" else ""))
-            print(f"{'':22s} sparse: {s['au_sparse_ranks']} "
-                  f"{[(k, round(v, 2)) for k, v in s['top_aus_sparse'][:4]]} (misfit {s['au_sparse_misfit_mm']:.2f} mm)"
-                  + (f" 12L/12R {s['au12_sides_sparse']['AU12L']:.2f}/{s['au12_sides_sparse']['AU12R']:.2f}"
-                     if s["code"] == "LFAU_12L" else ""))
+            print(
+                f"{s['stem']:22s} {s['fit_mean']:6.3f} {s['B0_mean']:6.3f} {s['B1_mean']:6.3f} {b2s} "
+                f"{(s['ratio_B0_over_fit'] or 0):6.2f} {s['scan_to_fit_mean']:5.2f}  {s['status'][:13]:13s} "
+                f"{s['jaw']['pitch_deg']:5.1f}  {s['au_ranks']} {[(k, round(v, 2)) for k, v in s['top_aus'][:4]]}"
+                + (
+                    f" 12L/12R {s['au12_sides']['AU12L']:.2f}/{s['au12_sides']['AU12R']:.2f}"
+                    if s["code"] == "LFAU_12L"
+                    else ""
+                )
+            )
+            print(
+                f"{'':22s} by skin motion: {s['au_motion_ranks']} "
+                f"{[(k, round(v, 2)) for k, v in s['top_aus_by_motion_mm'][:4]]} mm"
+                + (
+                    f" 12L/12R {s['au12_sides_motion_mm']['AU12L']:.2f}/{s['au12_sides_motion_mm']['AU12R']:.2f} mm"
+                    if s["code"] == "LFAU_12L"
+                    else ""
+                )
+            )
+            print(
+                f"{'':22s} sparse: {s['au_sparse_ranks']} "
+                f"{[(k, round(v, 2)) for k, v in s['top_aus_sparse'][:4]]} (misfit {s['au_sparse_misfit_mm']:.2f} mm)"
+                + (
+                    f" 12L/12R {s['au12_sides_sparse']['AU12L']:.2f}/{s['au12_sides_sparse']['AU12R']:.2f}"
+                    if s["code"] == "LFAU_12L"
+                    else ""
+                )
+            )
         ex = [s for s in r["scans"] if s["code"] != "N_N"]
-        print(f"  mean over expressions: fit {np.mean([s['fit_mean'] for s in ex]):.3f}  B0 "
-              f"{np.mean([s['B0_mean'] for s in ex]):.3f}  B1 {np.mean([s['B1_mean'] for s in ex]):.3f}", flush=True)
+        print(
+            f"  mean over expressions: fit {np.mean([s['fit_mean'] for s in ex]):.3f}  B0 "
+            f"{np.mean([s['B0_mean'] for s in ex]):.3f}  B1 {np.mean([s['B1_mean'] for s in ex]):.3f}",
+            flush=True,
+        )
     allex = [s for r in report["subjects"] for s in r["scans"] if s["code"] != "N_N"]
     if allex:
         report["summary"] = {
             "mean_fit": float(np.mean([s["fit_mean"] for s in allex])),
             "mean_B0": float(np.mean([s["B0_mean"] for s in allex])),
             "mean_B1": float(np.mean([s["B1_mean"] for s in allex])),
-            "B2_scans": {s["stem"]: {"fit": s["fit_mean"], "B2": s["B2_mean"]} for s in allex if s["B2_mean"] is not None},
-            "mean_fit_on_B2_scans": float(np.mean([s["fit_mean"] for s in allex if s["B2_mean"] is not None] or [np.nan])),
-            "mean_B2": float(np.mean([s["B2_mean"] for s in allex if s["B2_mean"] is not None] or [np.nan])),
+            "B2_scans": {
+                s["stem"]: {"fit": s["fit_mean"], "B2": s["B2_mean"]}
+                for s in allex
+                if s["B2_mean"] is not None
+            },
+            "mean_fit_on_B2_scans": float(
+                np.mean([s["fit_mean"] for s in allex if s["B2_mean"] is not None] or [np.nan])
+            ),
+            "mean_B2": float(
+                np.mean([s["B2_mean"] for s in allex if s["B2_mean"] is not None] or [np.nan])
+            ),
             "n_fit_le_1mm": int(sum(s["fit_mean"] <= 1.0 for s in allex)),
             "n_2x_better_than_B0": int(sum((s["ratio_B0_over_fit"] or 0) >= 2.0 for s in allex)),
             "n_expressions": len(allex),
-            "neutral_registration_mm": {s["stem"]: s["B0_mean"] for r in report["subjects"] for s in r["scans"]
-                                        if s["code"] == "N_N"},
+            "neutral_registration_mm": {
+                s["stem"]: s["B0_mean"]
+                for r in report["subjects"]
+                for s in r["scans"]
+                if s["code"] == "N_N"
+            },
         }
         print("summary:", json.dumps(report["summary"]))
     if not args.no_round_trip:
@@ -491,14 +710,18 @@ def main() -> None:
             print(f"== round trip on {face}", flush=True)
             rt = round_trip(face, kw)
             report["round_trip"].append(rt)
-            print(f"scan->fit {rt['scan_to_fit_mean']:.4f} mm, skin error median {rt['skin_vertex_error_mm']['median']:.4f} "
-                  f"mm, jaw error {np.round(rt['jaw_error'], 3).tolist()}, max activation error (distinguishable) "
-                  f"{rt['max_activation_error_distinguishable']}, all {rt['max_activation_error_all']:.3f}, status "
-                  f"{rt['status']}, fit {rt['fit_s']:.1f} s")
+            print(
+                f"scan->fit {rt['scan_to_fit_mean']:.4f} mm, skin error median {rt['skin_vertex_error_mm']['median']:.4f} "
+                f"mm, jaw error {np.round(rt['jaw_error'], 3).tolist()}, max activation error (distinguishable) "
+                f"{rt['max_activation_error_distinguishable']}, all {rt['max_activation_error_all']:.3f}, status "
+                f"{rt['status']}, fit {rt['fit_s']:.1f} s"
+            )
             c = rt["conditioning"]
             for g in ("activations", "jaw", "rigid", "all"):
                 sv = np.asarray(c["singular_values"][g])
-                print(f"  singular values {g}: max {sv[0]:.3g} min {sv[-1]:.3g} cond {c['condition'][g]:.3g}")
+                print(
+                    f"  singular values {g}: max {sv[0]:.3g} min {sv[-1]:.3g} cond {c['condition'][g]:.3g}"
+                )
             worst = sorted(c["vif"].items(), key=lambda kv: -kv[1])[:8]
             print("  least distinguishable (VIF):", [(k, round(v, 1)) for k, v in worst])
     out = Path(args.results) if args.results else Path(__file__).resolve().parent / "results"

@@ -23,15 +23,26 @@ from pathlib import Path
 
 import numpy as np
 
-CONTROLS = ("zygomaticus_major_L", "zygomaticus_major_R", "frontalis_medial_L", "frontalis_medial_R")
-TRUE = {"zygomaticus_major_L": 0.6, "zygomaticus_major_R": 0.3, "frontalis_medial_L": 0.5,
-        "frontalis_medial_R": 0.5}
+CONTROLS = (
+    "zygomaticus_major_L",
+    "zygomaticus_major_R",
+    "frontalis_medial_L",
+    "frontalis_medial_R",
+)
+TRUE = {
+    "zygomaticus_major_L": 0.6,
+    "zygomaticus_major_R": 0.3,
+    "frontalis_medial_L": 0.5,
+    "frontalis_medial_R": 0.5,
+}
 TRUE_PITCH = 5.0
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--quick", action="store_true", help="fewer reduced-model knots and outer iterations")
+    ap.add_argument(
+        "--quick", action="store_true", help="fewer reduced-model knots and outer iterations"
+    )
     args = ap.parse_args()
     import jax
 
@@ -59,20 +70,35 @@ def main() -> None:
     neutral, expr = scan_of(np.asarray(rig.rest)), scan_of(x)
     t = time.perf_counter()
     levels, knots, outer = (1, 3, 3) if args.quick else (2, 5, 4)
-    S = subject_from_rig(rig, neutral, face_mask=head.face_mask,
-                         options=SubjectOptions(levels=levels, pitch_knots=knots, controls=CONTROLS))
+    S = subject_from_rig(
+        rig,
+        neutral,
+        face_mask=head.face_mask,
+        options=SubjectOptions(levels=levels, pitch_knots=knots, controls=CONTROLS),
+    )
     rep["subject_s"] = time.perf_counter() - t
     t = time.perf_counter()
-    (res,) = fit_expressions(S, [expr], options=FitOptions(n_points=800, outer_iterations=outer, max_steps=20,
-                                                           jaw_starts=(0.0,), controls=CONTROLS))
+    (res,) = fit_expressions(
+        S,
+        [expr],
+        options=FitOptions(
+            n_points=800, outer_iterations=outer, max_steps=20, jaw_starts=(0.0,), controls=CONTROLS
+        ),
+    )
     rep["fit_s"] = time.perf_counter() - t
-    rep.update({
-        "backend": S.backend, "status": res.status,
-        "scan_to_fit_mean_mm": res.metrics.scan_to_fit["all"].mean,
-        "jaw_fit": res.jaw, "jaw_pitch_error_deg": res.jaw["pitch_deg"] - TRUE_PITCH,
-        "activation_error": {n: res.activations[n] - TRUE[n] for n in CONTROLS},
-        "skin_error_mean_mm": float(np.linalg.norm(np.asarray(res.fitted.vertices) - x, axis=1)[head.face_mask].mean()),
-    })
+    rep.update(
+        {
+            "backend": S.backend,
+            "status": res.status,
+            "scan_to_fit_mean_mm": res.metrics.scan_to_fit["all"].mean,
+            "jaw_fit": res.jaw,
+            "jaw_pitch_error_deg": res.jaw["pitch_deg"] - TRUE_PITCH,
+            "activation_error": {n: res.activations[n] - TRUE[n] for n in CONTROLS},
+            "skin_error_mean_mm": float(
+                np.linalg.norm(np.asarray(res.fitted.vertices) - x, axis=1)[head.face_mask].mean()
+            ),
+        }
+    )
     for k, v in rep.items():
         print(f"{k:28s} {v}")
     out = Path(__file__).resolve().parent / "results"

@@ -49,8 +49,13 @@ TOL = 1e-3  # mm
 
 
 def _machine():
-    return {"platform": platform.platform(), "cpus": os.cpu_count(), "jax": jax.__version__,
-            "backend": jax.default_backend(), "load_avg": list(os.getloadavg())}
+    return {
+        "platform": platform.platform(),
+        "cpus": os.cpu_count(),
+        "jax": jax.__version__,
+        "backend": jax.default_backend(),
+        "load_avg": list(os.getloadavg()),
+    }
 
 
 def _wall(fn, *args, repeat=5):
@@ -105,8 +110,9 @@ def systems(mesh, seed=0):
     x = mesh.vertices
     groups = pbd.skin_constraints(mesh, origin=x.mean(0) - [0.0, 0.0, 60.0])
     sel = rng.choice(mesh.n_vertices, mesh.n_vertices // 10, replace=False)
-    groups["anchors"] = pbd.anchor_constraints(sel, x[sel] + rng.normal(size=(len(sel), 3)),
-                                               stiffness=0.2)
+    groups["anchors"] = pbd.anchor_constraints(
+        sel, x[sel] + rng.normal(size=(len(sel), 3)), stiffness=0.2
+    )
     full = pbd.build_system(groups, mesh.n_vertices)
     dist = pbd.build_system({k: groups[k] for k in ("stretch", "cross")}, mesh.n_vertices)
     return full, dist
@@ -123,32 +129,49 @@ def bench_mesh(name, mesh, dtype, *, converge=True, reference=True, quick=False)
     counts = {k: int(S[k].size) for k in S.names}
     n_dist = counts["stretch"] + counts.get("cross", 0)
     x32 = jnp.asarray(mesh.vertices, dtype)
-    out = {"mesh": name, "n_vertices": mesh.n_vertices, "constraints": counts,
-           "n_colors": {k: int(S[k].n_colors) for k in S.names if hasattr(S[k], "n_colors")},
-           "build_s": build_s, "dtype": str(jnp.dtype(dtype)), "schemes": {}}
+    out = {
+        "mesh": name,
+        "n_vertices": mesh.n_vertices,
+        "constraints": counts,
+        "n_colors": {k: int(S[k].n_colors) for k in S.names if hasattr(S[k], "n_colors")},
+        "build_s": build_s,
+        "dtype": str(jnp.dtype(dtype)),
+        "schemes": {},
+    }
     iters = 100  # per call, so the per-call overhead is small against the sweeps
     for scheme in ("gs", "jacobi"):
         f_d = jax.jit(lambda s, x, sc=scheme: pbd.relax(s, x, iterations=iters, scheme=sc))
         t_d = _wall(f_d, D, x32)
         f_s = jax.jit(lambda s, x, sc=scheme: pbd.relax(s, x, iterations=iters, scheme=sc))
         t_s = _wall(f_s, S, x32)
-        r = {"distance_proj_per_s": n_dist * iters / t_d,
-             "ms_per_iteration_distance_only": 1e3 * t_d / iters,
-             "ms_per_iteration_full": 1e3 * t_s / iters,
-             "all_proj_per_s": sum(counts.values()) * iters / t_s}
+        r = {
+            "distance_proj_per_s": n_dist * iters / t_d,
+            "ms_per_iteration_distance_only": 1e3 * t_d / iters,
+            "ms_per_iteration_full": 1e3 * t_s / iters,
+            "all_proj_per_s": sum(counts.values()) * iters / t_s,
+        }
         out["schemes"][scheme] = r
-        print(f"  {scheme:6s} distance-only {r['distance_proj_per_s'] / 1e6:7.1f} M proj/s "
-              f"({r['ms_per_iteration_distance_only']:.2f} ms/iter)   full system "
-              f"{r['ms_per_iteration_full']:.2f} ms/iter ({r['all_proj_per_s'] / 1e6:.1f} M proj/s)",
-              flush=True)
+        print(
+            f"  {scheme:6s} distance-only {r['distance_proj_per_s'] / 1e6:7.1f} M proj/s "
+            f"({r['ms_per_iteration_distance_only']:.2f} ms/iter)   full system "
+            f"{r['ms_per_iteration_full']:.2f} ms/iter ({r['all_proj_per_s'] / 1e6:.1f} M proj/s)",
+            flush=True,
+        )
     if converge:
         x64 = jnp.asarray(mesh.vertices, jnp.float64)
         n_ref = 4000 if quick else 20000
-        stars = {sc: np.asarray(jax.jit(lambda s, x, sc=sc: pbd.relax(s, x, iterations=n_ref, scheme=sc))(S, x64))
-                 for sc in ("gs", "jacobi")}
+        stars = {
+            sc: np.asarray(
+                jax.jit(lambda s, x, sc=sc: pbd.relax(s, x, iterations=n_ref, scheme=sc))(S, x64)
+            )
+            for sc in ("gs", "jacobi")
+        }
         out["fixed_point_difference_mm"] = float(np.abs(stars["gs"] - stars["jacobi"]).max())
-        print(f"  converged gs and jacobi configurations differ by {out['fixed_point_difference_mm']:.3f} mm "
-              "(plain-PBD stiffness: the fixed point depends on the scheme)", flush=True)
+        print(
+            f"  converged gs and jacobi configurations differ by {out['fixed_point_difference_mm']:.3f} mm "
+            "(plain-PBD stiffness: the fixed point depends on the scheme)",
+            flush=True,
+        )
         for scheme in ("gs", "jacobi"):
             x_star = stars[scheme]
             step = 25
@@ -170,9 +193,15 @@ def bench_mesh(name, mesh, dtype, *, converge=True, reference=True, quick=False)
             r["error_history"] = hist[:: max(1, len(hist) // 40)]
             if reached:
                 r["seconds_to_1e-3mm"] = k * r["ms_per_iteration_full"] / 1e3
-            print(f"  {scheme:6s} iterations to {TOL:g} mm: "
-                  + (f"{k} ({r['seconds_to_1e-3mm'] * 1e3:.0f} ms at {r['ms_per_iteration_full']:.2f} ms/iter)"
-                     if reached else f"not within {limit} (max error {hist[-1][1]:.2e} mm)"), flush=True)
+            print(
+                f"  {scheme:6s} iterations to {TOL:g} mm: "
+                + (
+                    f"{k} ({r['seconds_to_1e-3mm'] * 1e3:.0f} ms at {r['ms_per_iteration_full']:.2f} ms/iter)"
+                    if reached
+                    else f"not within {limit} (max error {hist[-1][1]:.2e} mm)"
+                ),
+                flush=True,
+            )
     if reference:
         xs = mesh.vertices.copy()
         t = time.perf_counter()
@@ -180,10 +209,15 @@ def bench_mesh(name, mesh, dtype, *, converge=True, reference=True, quick=False)
         ref_s = time.perf_counter() - t
         out["reference_s_per_iteration"] = ref_s
         for scheme in ("gs", "jacobi"):
-            out["schemes"][scheme]["speedup_vs_reference"] = ref_s / (out["schemes"][scheme]["ms_per_iteration_full"] / 1e3)
-        print(f"  sequential reference {ref_s * 1e3:.0f} ms/iter -> speed-up gs "
-              f"{out['schemes']['gs']['speedup_vs_reference']:.0f}x, jacobi "
-              f"{out['schemes']['jacobi']['speedup_vs_reference']:.0f}x", flush=True)
+            out["schemes"][scheme]["speedup_vs_reference"] = ref_s / (
+                out["schemes"][scheme]["ms_per_iteration_full"] / 1e3
+            )
+        print(
+            f"  sequential reference {ref_s * 1e3:.0f} ms/iter -> speed-up gs "
+            f"{out['schemes']['gs']['speedup_vs_reference']:.0f}x, jacobi "
+            f"{out['schemes']['jacobi']['speedup_vs_reference']:.0f}x",
+            flush=True,
+        )
     return out
 
 
@@ -196,12 +230,21 @@ def bench_gradient(mesh, dtype, iterations=100):
     x0 = jnp.asarray(mesh.vertices, dtype)
     w = jnp.asarray(np.random.default_rng(3).normal(size=mesh.vertices.shape), dtype)
     tgt = S["anchors"].target[S["anchors"].inv_perm]
-    out = {"iterations": iterations, "n_vertices": mesh.n_vertices, "dtype": str(jnp.dtype(dtype)),
-           "runs": []}
+    out = {
+        "iterations": iterations,
+        "n_vertices": mesh.n_vertices,
+        "dtype": str(jnp.dtype(dtype)),
+        "runs": [],
+    }
     for ck in (None, 1, 10):
+
         def loss(x, t, ck=ck):
-            return jnp.sum(w * pbd.relax(S.set("anchors", target=t), x, iterations=iterations,
-                                         checkpoint_every=ck))
+            return jnp.sum(
+                w
+                * pbd.relax(
+                    S.set("anchors", target=t), x, iterations=iterations, checkpoint_every=ck
+                )
+            )
 
         g = jax.jit(jax.grad(loss, argnums=(0, 1)))
         t = time.perf_counter()
@@ -210,19 +253,30 @@ def bench_gradient(mesh, dtype, iterations=100):
         ma = comp.memory_analysis()
         peak = None
         if ma is not None:
-            peak = (ma.argument_size_in_bytes + ma.output_size_in_bytes + ma.temp_size_in_bytes
-                    - ma.alias_size_in_bytes)
+            peak = (
+                ma.argument_size_in_bytes
+                + ma.output_size_in_bytes
+                + ma.temp_size_in_bytes
+                - ma.alias_size_in_bytes
+            )
         rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
         wall = _wall(comp, x0, tgt, repeat=2)
         rss1 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-        r = {"checkpoint_every": ck, "compile_s": compile_s, "wall_s": wall,
-             "xla_peak_mb": None if peak is None else peak / 2**20,
-             "xla_temp_mb": None if ma is None else ma.temp_size_in_bytes / 2**20,
-             "rss_growth_mb": (rss1 - rss0) / 1024}
+        r = {
+            "checkpoint_every": ck,
+            "compile_s": compile_s,
+            "wall_s": wall,
+            "xla_peak_mb": None if peak is None else peak / 2**20,
+            "xla_temp_mb": None if ma is None else ma.temp_size_in_bytes / 2**20,
+            "rss_growth_mb": (rss1 - rss0) / 1024,
+        }
         out["runs"].append(r)
-        print(f"  gradient through {iterations} iterations, checkpoint_every={ck}: "
-              f"{wall:.2f} s, XLA peak {r['xla_peak_mb']:.0f} MB (temporaries {r['xla_temp_mb']:.0f} MB), "
-              f"compile {compile_s:.1f} s", flush=True)
+        print(
+            f"  gradient through {iterations} iterations, checkpoint_every={ck}: "
+            f"{wall:.2f} s, XLA peak {r['xla_peak_mb']:.0f} MB (temporaries {r['xla_temp_mb']:.0f} MB), "
+            f"compile {compile_s:.1f} s",
+            flush=True,
+        )
     return out
 
 
@@ -230,7 +284,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--sizes", default="1k,ict,100k")
     ap.add_argument("--dtype", default="float32", choices=["float32", "float64"])
-    ap.add_argument("--quick", action="store_true", help="fewer iterations, no 100k convergence run")
+    ap.add_argument(
+        "--quick", action="store_true", help="fewer iterations, no 100k convergence run"
+    )
     args = ap.parse_args()
     jax.config.update("jax_enable_x64", True)
     dtype = jnp.float32 if args.dtype == "float32" else jnp.float64
@@ -239,13 +295,23 @@ def main() -> None:
     face = ict_face() if ("ict" in sizes or "1k" in sizes) else None
     for s in sizes:
         if s == "1k":
-            report["meshes"].append(bench_mesh("ict_patch_1k", patch(face), dtype, quick=args.quick))
+            report["meshes"].append(
+                bench_mesh("ict_patch_1k", patch(face), dtype, quick=args.quick)
+            )
         elif s == "ict":
             report["meshes"].append(bench_mesh("ict_face", face, dtype, quick=args.quick))
             report["gradient"] = bench_gradient(face, dtype)
         elif s == "100k":
-            report["meshes"].append(bench_mesh("sheet_100k", big_sheet(), dtype, converge=False,
-                                               reference=False, quick=args.quick))
+            report["meshes"].append(
+                bench_mesh(
+                    "sheet_100k",
+                    big_sheet(),
+                    dtype,
+                    converge=False,
+                    reference=False,
+                    quick=args.quick,
+                )
+            )
         else:
             raise SystemExit(f"unknown size {s!r}: use 1k, ict, 100k")
     out = Path(__file__).resolve().parent / "results"

@@ -66,37 +66,58 @@ def main() -> None:
     ts = load_truth(shared_path("data", "bosphorus_style", pytest_skip=False))
     head = Template.from_head(generic_head())
     ict = ict_template(truth=ts)
-    templates = {"default_head": head, "ict_neutral": Template(ict.mesh, ict.landmarks, ict.face_mask, "ict_neutral")}
+    templates = {
+        "default_head": head,
+        "ict_neutral": Template(ict.mesh, ict.landmarks, ict.face_mask, "ict_neutral"),
+    }
 
     results: dict = {
-        "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "load_avg": os.getloadavg()},
+        "machine": {
+            "platform": platform.platform(),
+            "cpus": os.cpu_count(),
+            "load_avg": os.getloadavg(),
+        },
         "registration": [],
         "alignment": [],
         "baselines": [],
     }
     regs = {}
     print("registration (template -> neutral scan)")
-    print(f"{'template':14s} {'scan':12s} {'wall s':>7s} {'cpu s':>7s} {'V':>6s} {'resid mm':>9s} {'truth mean':>10s} {'p95':>6s}")
+    print(
+        f"{'template':14s} {'scan':12s} {'wall s':>7s} {'cpu s':>7s} {'V':>6s} {'resid mm':>9s} {'truth mean':>10s} {'p95':>6s}"
+    )
     for subj in ts.subjects():
         ns = ts.neutral_stem(subj)
         scan = ts.scan(ns)
         idx = ts.scan_index(ns)
         for name, tpl in templates.items():
-            reg, wall, cpu = _timed(lambda: register_template(scan, template=tpl, scan_index=idx), args.repeat)
+            reg, wall, cpu = _timed(
+                lambda: register_template(scan, template=tpl, scan_index=idx), args.repeat
+            )
             ev = evaluate_against_truth(reg.mesh, ts, ns)
             if name == "default_head":
                 regs[subj] = reg
             row = {
-                "template": name, "scan": ns, "wall_s": wall, "cpu_s": cpu, "n_vertices": int(len(reg.residuals)),
-                "n_solves": len(reg.history), "residual_mean_mm": reg.stats().mean,
-                "truth_mm": ev.error["all"].to_dict(), "truth_n": ev.n_region,
+                "template": name,
+                "scan": ns,
+                "wall_s": wall,
+                "cpu_s": cpu,
+                "n_vertices": int(len(reg.residuals)),
+                "n_solves": len(reg.history),
+                "residual_mean_mm": reg.stats().mean,
+                "truth_mm": ev.error["all"].to_dict(),
+                "truth_n": ev.n_region,
             }
             results["registration"].append(row)
-            print(f"{name:14s} {ns:12s} {wall:7.2f} {cpu:7.2f} {row['n_vertices']:6d} {row['residual_mean_mm']:9.3f} "
-                  f"{ev.mean:10.3f} {ev.error['all'].p95:6.3f}")
+            print(
+                f"{name:14s} {ns:12s} {wall:7.2f} {cpu:7.2f} {row['n_vertices']:6d} {row['residual_mean_mm']:9.3f} "
+                f"{ev.mean:10.3f} {ev.error['all'].p95:6.3f}"
+            )
 
     print("\nalignment (expression scan -> neutral scan), errors vs truth.json")
-    print(f"{'scan':22s} {'wall s':>7s} {'cpu s':>7s} {'rot deg':>8s} {'t mm':>7s} {'disp mm':>8s} {'(landmarks only: deg, mm)':>26s}")
+    print(
+        f"{'scan':22s} {'wall s':>7s} {'cpu s':>7s} {'rot deg':>8s} {'t mm':>7s} {'disp mm':>8s} {'(landmarks only: deg, mm)':>26s}"
+    )
     for subj in ts.subjects():
         ns = ts.neutral_stem(subj)
         fixed_idx = ts.scan_index(ns)
@@ -104,29 +125,49 @@ def main() -> None:
             if stem == ns:
                 continue
             scan = ts.scan(stem)
-            al, wall, cpu = _timed(lambda: align_scans(scan, ts.scan(ns), fixed_index=fixed_idx), args.repeat)
+            al, wall, cpu = _timed(
+                lambda: align_scans(scan, ts.scan(ns), fixed_index=fixed_idx), args.repeat
+            )
             T_true = ts.relative_transform(stem, ns)
             face = ts.truth_vertices(stem)[:9409]
             ang, dt, disp = _rot_err(al.transform, T_true, face)
             ang0, dt0, disp0 = _rot_err(al.landmark_transform, T_true, face)
-            results["alignment"].append({
-                "scan": stem, "wall_s": wall, "cpu_s": cpu, "rot_err_deg": ang, "trans_err_mm": dt,
-                "mean_disp_err_mm": disp, "landmark_only": {"rot_err_deg": ang0, "trans_err_mm": dt0,
-                                                            "mean_disp_err_mm": disp0},
-                "converged": al.converged,
-            })
-            print(f"{stem:22s} {wall:7.2f} {cpu:7.2f} {ang:8.3f} {dt:7.3f} {disp:8.3f}   ({ang0:.3f}, {dt0:.3f})")
+            results["alignment"].append(
+                {
+                    "scan": stem,
+                    "wall_s": wall,
+                    "cpu_s": cpu,
+                    "rot_err_deg": ang,
+                    "trans_err_mm": dt,
+                    "mean_disp_err_mm": disp,
+                    "landmark_only": {
+                        "rot_err_deg": ang0,
+                        "trans_err_mm": dt0,
+                        "mean_disp_err_mm": disp0,
+                    },
+                    "converged": al.converged,
+                }
+            )
+            print(
+                f"{stem:22s} {wall:7.2f} {cpu:7.2f} {ang:8.3f} {dt:7.3f} {disp:8.3f}   ({ang0:.3f}, {dt0:.3f})"
+            )
             if args.baselines:
                 reg = regs[subj]
                 e0 = evaluate_against_truth(baseline_b0(reg, al), ts, stem)
                 e1 = evaluate_against_truth(baseline_b1(reg, scan.landmarks, al), ts, stem)
-                results["baselines"].append({"scan": stem, "n_region": e0.n_region, "B0": e0.to_dict(), "B1": e1.to_dict()})
+                results["baselines"].append(
+                    {"scan": stem, "n_region": e0.n_region, "B0": e0.to_dict(), "B1": e1.to_dict()}
+                )
 
     if args.baselines:
-        print("\nbaselines (default head registration, estimated alignment): mean error over the evaluation region, mm")
+        print(
+            "\nbaselines (default head registration, estimated alignment): mean error over the evaluation region, mm"
+        )
         print(f"{'scan':22s} {'n':>6s} {'B0':>7s} {'B1':>7s}")
         for r in results["baselines"]:
-            print(f"{r['scan']:22s} {r['n_region']:6d} {r['B0']['error']['all']['mean']:7.3f} {r['B1']['error']['all']['mean']:7.3f}")
+            print(
+                f"{r['scan']:22s} {r['n_region']:6d} {r['B0']['error']['all']['mean']:7.3f} {r['B1']['error']['all']['mean']:7.3f}"
+            )
         b0 = np.mean([r["B0"]["error"]["all"]["mean"] for r in results["baselines"]])
         b1 = np.mean([r["B1"]["error"]["all"]["mean"] for r in results["baselines"]])
         print(f"{'average':22s} {'':6s} {b0:7.3f} {b1:7.3f}")

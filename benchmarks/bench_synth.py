@@ -108,15 +108,22 @@ def _expression_convergence(rig, sweeps: str, dt) -> dict:
     rigs = [rig.with_iterations(muscles=m, skin=s, skin_rho=q) for m, s, q in counts]
     cols = [np.linalg.norm(run(r) - ref, axis=2) for r in rigs]
     gaps = [gap(r) for r in rigs]
-    for title, table, key in (("distance to 3000/400 from rest, max / p99 mm", cols, "to_deep_solve"),
-                              ("equilibrium gap (1000 more sweeps), max / p99 mm", gaps, "equilibrium_gap")):
+    for title, table, key in (
+        ("distance to 3000/400 from rest, max / p99 mm", cols, "to_deep_solve"),
+        ("equilibrium gap (1000 more sweeps), max / p99 mm", gaps, "equilibrium_gap"),
+    ):
         print(f"{title:50s}" + "".join(_label(*c).rjust(14) for c in counts))
         for i, name in enumerate(cases):
             row = out.setdefault(name, {})
             for c, d in zip(counts, table):
-                row.setdefault(_label(*c), {})[key] = {"max_mm": float(d[i].max()),
-                                                       "p99_mm": float(np.percentile(d[i], 99))}
-            print(f"{name:50s}" + "".join(f"{d[i].max():6.2f} / {np.percentile(d[i], 99):5.2f}" for d in table))
+                row.setdefault(_label(*c), {})[key] = {
+                    "max_mm": float(d[i].max()),
+                    "p99_mm": float(np.percentile(d[i], 99)),
+                }
+            print(
+                f"{name:50s}"
+                + "".join(f"{d[i].max():6.2f} / {np.percentile(d[i], 99):5.2f}" for d in table)
+            )
     return out
 
 
@@ -133,6 +140,7 @@ def _reverse_pass(rig, a, jaw, dt, *, repeat: int) -> dict:
         def g(th):
             _, vjp = jax.vjp(lambda t: synthesize(r, t[:-1], JawPose(t[-1])), th)
             return vjp(ct)[0]
+
         return jax.jit(g)
 
     on, off = grad_of(rig), grad_of(rig.with_iterations(checkpoint=False))
@@ -165,13 +173,19 @@ def _reverse_pass(rig, a, jaw, dt, *, repeat: int) -> dict:
         t_sep.append(_time(separate, th, repeat=repeat)[1])
         t_fus.append(_time(fused, th, repeat=repeat)[1])
     g_fus = np.asarray(fused(th)[1])
-    return {"skin_and_reverse_separate_ms_min": min(t_sep), "skin_and_reverse_fused_ms_min": min(t_fus),
-            "skin_and_reverse_separate_over_fused": min(t_sep) / min(t_fus),
-            "skin_and_reverse_fused_gradient_difference": float(np.abs(g_fus - g_on).max()),
-            "reverse_compile_s": c_on, "reverse_plain_compile_s": c_off, "reverse_ms_min": min(t_on),
-            "reverse_plain_ms_min": min(t_off), "reverse_plain_over_checkpointed": min(t_off) / min(t_on),
-            "reverse_max_gradient_difference": float(np.abs(g_on - g_off).max()),
-            "reverse_gradient_scale": float(np.abs(g_off).max())}
+    return {
+        "skin_and_reverse_separate_ms_min": min(t_sep),
+        "skin_and_reverse_fused_ms_min": min(t_fus),
+        "skin_and_reverse_separate_over_fused": min(t_sep) / min(t_fus),
+        "skin_and_reverse_fused_gradient_difference": float(np.abs(g_fus - g_on).max()),
+        "reverse_compile_s": c_on,
+        "reverse_plain_compile_s": c_off,
+        "reverse_ms_min": min(t_on),
+        "reverse_plain_ms_min": min(t_off),
+        "reverse_plain_over_checkpointed": min(t_off) / min(t_on),
+        "reverse_max_gradient_difference": float(np.abs(g_on - g_off).max()),
+        "reverse_gradient_scale": float(np.abs(g_off).max()),
+    }
 
 
 def main():
@@ -180,32 +194,46 @@ def main():
     ap.add_argument("--repeat", type=int, default=7)
     ap.add_argument("--no-jacobian", action="store_true")
     ap.add_argument("--no-reverse", action="store_true", help="skip the reverse-pass timing")
-    ap.add_argument("--expressions", action="store_true",
-                    help="also measure the convergence on the six emotions, AU26 and all controls at 1")
-    ap.add_argument("--muscle-shell", type=float, default=None,
-                    help="the muscles' shell stiffness (default: the rig's, 1; 0 = the thesis's muscle)")
-    ap.add_argument("--footprint-clusters", default="0",
-                    help="comma-separated cluster widths (reference mm) of the tissue footprint to time "
-                         "beside the default, side by side, 0 = the exact footprint "
-                         "(jaxface.anatomy.skin.footprint_operator)")
-    ap.add_argument("--sweeps", default="",
-                    help="comma-separated muscle/skin sweep counts for the time-accuracy curve, "
-                         "e.g. 32/8,128/8,256/16 (each compiles once); a third number turns on the "
-                         "skin's Chebyshev acceleration, e.g. 512/24/0.97")
+    ap.add_argument(
+        "--expressions",
+        action="store_true",
+        help="also measure the convergence on the six emotions, AU26 and all controls at 1",
+    )
+    ap.add_argument(
+        "--muscle-shell",
+        type=float,
+        default=None,
+        help="the muscles' shell stiffness (default: the rig's, 1; 0 = the thesis's muscle)",
+    )
+    ap.add_argument(
+        "--footprint-clusters",
+        default="0",
+        help="comma-separated cluster widths (reference mm) of the tissue footprint to time "
+        "beside the default, side by side, 0 = the exact footprint "
+        "(jaxface.anatomy.skin.footprint_operator)",
+    )
+    ap.add_argument(
+        "--sweeps",
+        default="",
+        help="comma-separated muscle/skin sweep counts for the time-accuracy curve, "
+        "e.g. 32/8,128/8,256/16 (each compiles once); a third number turns on the "
+        "skin's Chebyshev acceleration, e.g. 512/24/0.97",
+    )
     args = ap.parse_args()
     if args.dtype == "float64":
         jax.config.update("jax_enable_x64", True)
     from jaxface import facs
     from jaxface.anatomy.ict import load_ict_face
-    from jaxface.commands.synth import parse_sweeps
     from jaxface.anatomy.jaw import JawPose
     from jaxface.anatomy.rig import build_rig, equilibrium_gap, synthesize
-    from jaxface.commands.synth import SWEEP_PRESETS
+    from jaxface.commands.synth import SWEEP_PRESETS, parse_sweeps
     from jaxface.testing import shared_path
 
     dt = jnp.float32 if args.dtype == "float32" else jnp.float64
-    f = load_ict_face(shared_path("data", "ict", "ict_face.npz", pytest_skip=False),
-                      shared_path("data", "bosphorus_style", "truth.json", pytest_skip=False))
+    f = load_ict_face(
+        shared_path("data", "ict", "ict_face.npz", pytest_skip=False),
+        shared_path("data", "bosphorus_style", "truth.json", pytest_skip=False),
+    )
     t0 = time.perf_counter()
     kw = {} if args.muscle_shell is None else {"muscle_shell_stiffness": args.muscle_shell}
     rig = build_rig(f.skin, f.landmarks, upper_teeth=f.upper_teeth, lower_teeth=f.lower_teeth, **kw)
@@ -213,17 +241,27 @@ def main():
     a, jaw, _ = facs.aus_to_controls({"AU12": 1.0, "AU6": 1.0, "AU26": 0.6}, rig.muscle_names)
     a = jnp.asarray(a, dt)
     jaw = JawPose(jnp.asarray(jaw.pitch_deg, dt), jnp.asarray(0.0, dt), jnp.asarray(0.0, dt))
-    res = {"machine": platform.processor() or platform.machine(), "cpus": os.cpu_count(),
-           "backend": jax.default_backend(), "dtype": args.dtype, "vertices": rig.n_vertices,
-           "controls": rig.n_controls, "muscle_particles": rig.muscles.n_particles,
-           "muscle_sweeps": rig.muscles.iterations, "skin_sweeps": rig.skin.iterations,
-           "muscle_shell_stiffness": rig.muscles.shell_stiffness,
-           "build_s": build_s}
+    res = {
+        "machine": platform.processor() or platform.machine(),
+        "cpus": os.cpu_count(),
+        "backend": jax.default_backend(),
+        "dtype": args.dtype,
+        "vertices": rig.n_vertices,
+        "controls": rig.n_controls,
+        "muscle_particles": rig.muscles.n_particles,
+        "muscle_sweeps": rig.muscles.iterations,
+        "skin_sweeps": rig.skin.iterations,
+        "muscle_shell_stiffness": rig.muscles.shell_stiffness,
+        "build_s": build_s,
+    }
     c, mn, md = _time(synthesize, rig, a, jaw, repeat=args.repeat)
     res.update(synth_compile_s=c, synth_ms_min=mn, synth_ms_median=md)
     x = synthesize(rig, a, jaw)
-    ref = synthesize(rig.with_iterations(muscles=10 * rig.muscles.iterations,
-                                         skin=10 * rig.skin.iterations), a, jaw)
+    ref = synthesize(
+        rig.with_iterations(muscles=10 * rig.muscles.iterations, skin=10 * rig.skin.iterations),
+        a,
+        jaw,
+    )
     res["convergence_mm_vs_10x_sweeps"] = float(jnp.abs(x - ref).max())
     res["motion_mm"] = float(jnp.linalg.norm(x - rig.rest, axis=1).max())
     # the converged synthesis: the 'converged' preset of `jaxface synth --sweeps`, timed
@@ -236,32 +274,55 @@ def main():
         t_conv.append(_time(synthesize, conv, a, jaw, repeat=args.repeat)[1])
     g_def = np.asarray(equilibrium_gap(rig, a, jaw))
     g_conv = np.asarray(equilibrium_gap(conv, a, jaw))
-    res.update(converged_sweeps=_label(m_, s_, q_), converged_ms_min=min(t_conv),
-               converged_over_default=min(t_conv) / min(t_def), default_gap_max_mm=float(g_def.max()),
-               converged_gap_max_mm=float(g_conv.max()), converged_gap_p99_mm=float(np.percentile(g_conv, 99)))
+    res.update(
+        converged_sweeps=_label(m_, s_, q_),
+        converged_ms_min=min(t_conv),
+        converged_over_default=min(t_conv) / min(t_def),
+        default_gap_max_mm=float(g_def.max()),
+        converged_gap_max_mm=float(g_conv.max()),
+        converged_gap_p99_mm=float(np.percentile(g_conv, 99)),
+    )
     if args.footprint_clusters:
         # the same synthesis with other footprint cluster widths, timed alternately with the
         # default so that both see the same machine
         from jaxface.anatomy.rig import FOOTPRINT_CLUSTER_MM
 
-        fp = {"default_cluster_mm": FOOTPRINT_CLUSTER_MM, "default_nnz": int(rig.skin.fp_vals.shape[0]),
-              "other": []}
+        fp = {
+            "default_cluster_mm": FOOTPRINT_CLUSTER_MM,
+            "default_nnz": int(rig.skin.fp_vals.shape[0]),
+            "other": [],
+        }
         for item in args.footprint_clusters.split(","):
             h = float(item)
-            r = build_rig(f.skin, f.landmarks, upper_teeth=f.upper_teeth, lower_teeth=f.lower_teeth,
-                          footprint_cluster_mm=h, **kw)
+            r = build_rig(
+                f.skin,
+                f.landmarks,
+                upper_teeth=f.upper_teeth,
+                lower_teeth=f.lower_teeth,
+                footprint_cluster_mm=h,
+                **kw,
+            )
             t_def, t_oth = [], []
             for _ in range(3):
                 t_def.append(_time(synthesize, rig, a, jaw, repeat=args.repeat)[1])
                 t_oth.append(_time(synthesize, r, a, jaw, repeat=args.repeat)[1])
             d = np.linalg.norm(np.asarray(synthesize(r, a, jaw)) - np.asarray(x), axis=1)
-            row = {"cluster_mm": h, "nnz": int(r.skin.fp_vals.shape[0]), "ms_min": min(t_oth),
-                   "default_ms_min": min(t_def), "ratio_over_default": min(t_oth) / min(t_def),
-                   "max_mm_from_default": float(d.max()), "p99_mm_from_default": float(np.percentile(d, 99))}
+            row = {
+                "cluster_mm": h,
+                "nnz": int(r.skin.fp_vals.shape[0]),
+                "ms_min": min(t_oth),
+                "default_ms_min": min(t_def),
+                "ratio_over_default": min(t_oth) / min(t_def),
+                "max_mm_from_default": float(d.max()),
+                "p99_mm_from_default": float(np.percentile(d, 99)),
+            }
             fp["other"].append(row)
-            print(f"footprint clusters {h:g} mm: {row['nnz']} entries (default {fp['default_nnz']}), "
-                  f"{row['ms_min']:.1f} ms against {row['default_ms_min']:.1f} ms (x{row['ratio_over_default']:.2f}), "
-                  f"max {d.max():.3f} / p99 {np.percentile(d, 99):.3f} mm from the default", flush=True)
+            print(
+                f"footprint clusters {h:g} mm: {row['nnz']} entries (default {fp['default_nnz']}), "
+                f"{row['ms_min']:.1f} ms against {row['default_ms_min']:.1f} ms (x{row['ratio_over_default']:.2f}), "
+                f"max {d.max():.3f} / p99 {np.percentile(d, 99):.3f} mm from the default",
+                flush=True,
+            )
         res["footprint"] = fp
     if args.sweeps:
         deep = np.asarray(synthesize(rig.with_iterations(muscles=3000, skin=400), a, jaw))
@@ -272,12 +333,25 @@ def main():
             _, mn, _ = _time(synthesize, r, a, jaw, repeat=max(3, args.repeat // 2))
             d = np.linalg.norm(np.asarray(synthesize(r, a, jaw)) - deep, axis=1)
             g = np.asarray(equilibrium_gap(r, a, jaw))
-            curve.append(dict(muscle_sweeps=m_, skin_sweeps=s_, skin_rho=q_, ms_min=mn, max_mm=float(d.max()),
-                              p99_mm=float(np.percentile(d, 99)), mean_mm=float(d.mean()),
-                              gap_max_mm=float(g.max()), gap_p99_mm=float(np.percentile(g, 99))))
-            print(f"sweeps {_label(m_, s_, q_):<14} {mn:7.1f} ms   vs 3000/400 sweeps: max {d.max():.3f}  "
-                  f"p99 {np.percentile(d, 99):.3f}  mean {d.mean():.4f} mm   equilibrium gap: max "
-                  f"{g.max():.3f}  p99 {np.percentile(g, 99):.4f} mm", flush=True)
+            curve.append(
+                dict(
+                    muscle_sweeps=m_,
+                    skin_sweeps=s_,
+                    skin_rho=q_,
+                    ms_min=mn,
+                    max_mm=float(d.max()),
+                    p99_mm=float(np.percentile(d, 99)),
+                    mean_mm=float(d.mean()),
+                    gap_max_mm=float(g.max()),
+                    gap_p99_mm=float(np.percentile(g, 99)),
+                )
+            )
+            print(
+                f"sweeps {_label(m_, s_, q_):<14} {mn:7.1f} ms   vs 3000/400 sweeps: max {d.max():.3f}  "
+                f"p99 {np.percentile(d, 99):.3f}  mean {d.mean():.4f} mm   equilibrium gap: max "
+                f"{g.max():.3f}  p99 {np.percentile(g, 99):.4f} mm",
+                flush=True,
+            )
         res["time_accuracy"] = curve
     if args.expressions:
         res["expressions"] = _expression_convergence(rig, args.sweeps, dt)

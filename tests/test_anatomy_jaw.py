@@ -7,8 +7,15 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from jaxface.anatomy.frame import face_frame, mirror_label
-from jaxface.anatomy.jaw import (PITCH_LIMITS_DEG, PROTRUSION_LIMITS_MM, YAW_LIMITS_DEG, JawModel,
-                                 JawPose, rotation_matrix, smooth_clamp)
+from jaxface.anatomy.jaw import (
+    PITCH_LIMITS_DEG,
+    PROTRUSION_LIMITS_MM,
+    YAW_LIMITS_DEG,
+    JawModel,
+    JawPose,
+    rotation_matrix,
+    smooth_clamp,
+)
 from jaxface.errors import LandmarkError
 from jaxface.landmarks import Landmarks
 
@@ -16,14 +23,23 @@ from jaxface.landmarks import Landmarks
 def synthetic_landmarks(scale=1.0, shift=(0.0, 0.0, 0.0)):
     """A plausible adult face (mm), written for these tests (left = +x)."""
     half = {
-        "Outer {s} eyebrow": (56.0, 20.0, -8.0), "Middle {s} eyebrow": (36.0, 29.0, 9.0),
-        "Inner {s} eyebrow": (12.0, 26.0, 18.0), "Outer {s} eye corner": (44.0, 1.0, -3.0),
-        "Inner {s} eye corner": (18.0, -1.0, 3.0), "Nose saddle {s}": (8.0, -6.0, 17.0),
-        "{S} nose peak": (17.0, -36.0, 20.0), "{S} mouth corner": (25.0, -68.0, 13.0),
+        "Outer {s} eyebrow": (56.0, 20.0, -8.0),
+        "Middle {s} eyebrow": (36.0, 29.0, 9.0),
+        "Inner {s} eyebrow": (12.0, 26.0, 18.0),
+        "Outer {s} eye corner": (44.0, 1.0, -3.0),
+        "Inner {s} eye corner": (18.0, -1.0, 3.0),
+        "Nose saddle {s}": (8.0, -6.0, 17.0),
+        "{S} nose peak": (17.0, -36.0, 20.0),
+        "{S} mouth corner": (25.0, -68.0, 13.0),
     }
-    mid = {"Nose tip": (0.0, -29.0, 42.0), "Upper lip outer middle": (0.0, -58.0, 29.0),
-           "Upper lip inner middle": (0.0, -66.5, 24.0), "Lower lip inner middle": (0.0, -67.5, 23.5),
-           "Lower lip outer middle": (0.0, -77.0, 26.5), "Chin middle": (0.0, -94.0, 21.5)}
+    mid = {
+        "Nose tip": (0.0, -29.0, 42.0),
+        "Upper lip outer middle": (0.0, -58.0, 29.0),
+        "Upper lip inner middle": (0.0, -66.5, 24.0),
+        "Lower lip inner middle": (0.0, -67.5, 23.5),
+        "Lower lip outer middle": (0.0, -77.0, 26.5),
+        "Chin middle": (0.0, -94.0, 21.5),
+    }
     names, pos = [], []
     for k, v in half.items():
         for side, sgn in (("left", 1.0), ("right", -1.0)):
@@ -68,8 +84,11 @@ def test_rotation_matrix_matches_scipy():
         ax = rng.normal(size=3)
         ax /= np.linalg.norm(ax)
         ang = rng.uniform(-2, 2)
-        np.testing.assert_allclose(rotation_matrix(jnp.asarray(ax), ang),
-                                   Rotation.from_rotvec(ax * ang).as_matrix(), atol=1e-12)
+        np.testing.assert_allclose(
+            rotation_matrix(jnp.asarray(ax), ang),
+            Rotation.from_rotvec(ax * ang).as_matrix(),
+            atol=1e-12,
+        )
 
 
 def test_neutral_is_identity(jaw):
@@ -84,8 +103,8 @@ def test_pitch_opens_about_the_condyles(jaw):
     cond = np.stack([jaw.pivot + 50 * jaw.pitch_axis, jaw.pivot - 50 * jaw.pitch_axis])
     pose = JawPose(12.0)
     moved = np.asarray(jaw.apply(pose, np.vstack([chin, cond])))
-    np.testing.assert_allclose(moved[1:], cond, atol=1e-9)           # the axis stays put
-    assert moved[0, 1] < chin[1] - 10 and moved[0, 2] < chin[2]       # chin down and back
+    np.testing.assert_allclose(moved[1:], cond, atol=1e-9)  # the axis stays put
+    assert moved[0, 1] < chin[1] - 10 and moved[0, 2] < chin[2]  # chin down and back
     R, _ = jaw.transform(pose)
     ang = np.degrees(np.arccos((np.trace(np.asarray(R)) - 1) / 2))
     assert ang == pytest.approx(12.0, abs=1e-6)
@@ -94,23 +113,29 @@ def test_pitch_opens_about_the_condyles(jaw):
 
 def test_yaw_and_protrusion_directions(jaw):
     chin = jnp.array([[0.0, -61.0, 110.0]])
-    assert float(jaw.apply(JawPose(0.0, 4.0), chin)[0, 0]) > 3.0       # to the subject's left
+    assert float(jaw.apply(JawPose(0.0, 4.0), chin)[0, 0]) > 3.0  # to the subject's left
     assert float(jaw.apply(JawPose(0.0, -4.0), chin)[0, 0]) < -3.0
     d = np.asarray(jaw.apply(JawPose(0.0, 0.0, 3.0), chin) - chin)[0]
     np.testing.assert_allclose(d, 3.0 * np.asarray(jaw.protrusion_dir), atol=1e-6)
-    assert d[2] > 2.0                                                  # mostly forward
+    assert d[2] > 2.0  # mostly forward
 
 
-@pytest.mark.parametrize("field,limits", [("pitch_deg", PITCH_LIMITS_DEG), ("yaw_deg", YAW_LIMITS_DEG),
-                                          ("protrusion_mm", PROTRUSION_LIMITS_MM)])
+@pytest.mark.parametrize(
+    "field,limits",
+    [
+        ("pitch_deg", PITCH_LIMITS_DEG),
+        ("yaw_deg", YAW_LIMITS_DEG),
+        ("protrusion_mm", PROTRUSION_LIMITS_MM),
+    ],
+)
 def test_limits_hold(jaw, field, limits):
     lo, hi = limits
     clamp = jax.vmap(lambda v: getattr(jaw.clamp(JawPose(**{field: v})), field))
     far = np.asarray(clamp(jnp.linspace(lo - 1000.0, hi + 1000.0, 401)))
-    assert far.min() >= lo and far.max() <= hi                          # never beyond
+    assert far.min() >= lo and far.max() <= hi  # never beyond
     near = np.asarray(clamp(jnp.linspace(lo - 2.0, hi + 2.0, 401)))
-    assert near.min() > lo and near.max() < hi                          # strictly inside
-    assert np.all(np.diff(near) > 0)                                    # strictly monotone
+    assert near.min() > lo and near.max() < hi  # strictly inside
+    assert np.all(np.diff(near) > 0)  # strictly monotone
     mid = 0.5 * (lo + hi)
     assert float(getattr(jaw.clamp(JawPose(**{field: mid})), field)) == pytest.approx(mid, abs=1e-6)
 
@@ -120,7 +145,7 @@ def test_smooth_clamp_derivative_in_unit_interval():
     g = np.asarray(dfn(jnp.linspace(-30.0, 40.0, 141)))
     assert np.all(g >= 0) and np.all(g <= 1.0 + 1e-12)
     gin = np.asarray(dfn(jnp.linspace(-6.0, 20.0, 53)))
-    assert np.all(gin > 1e-5)                                           # no dead zone near the limits
+    assert np.all(gin > 1e-5)  # no dead zone near the limits
     assert float(dfn(jnp.array([7.0]))[0]) == pytest.approx(1.0, abs=1e-9)
 
 
@@ -142,7 +167,9 @@ def test_gradients_match_finite_differences(jaw):
 
 
 def test_vmap_over_poses(jaw):
-    poses = JawPose(jnp.array([0.0, 5.0, 15.0]), jnp.array([0.0, -2.0, 3.0]), jnp.array([0.0, 1.0, -1.0]))
+    poses = JawPose(
+        jnp.array([0.0, 5.0, 15.0]), jnp.array([0.0, -2.0, 3.0]), jnp.array([0.0, 1.0, -1.0])
+    )
     pts = jnp.array([[0.0, -61.0, 110.0]])
     one = jax.jit(lambda p: jaw.apply(p, pts))
     batch = jax.vmap(one)(poses)

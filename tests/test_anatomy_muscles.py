@@ -13,8 +13,14 @@ import pytest
 
 from jaxface import facs
 from jaxface.anatomy.jaw import JawPose
-from jaxface.anatomy.muscles import (fibre_thickening, moved_skull_points, muscle_volumes,
-                                     sample_targets, shell_targets, solve_muscles)
+from jaxface.anatomy.muscles import (
+    fibre_thickening,
+    moved_skull_points,
+    muscle_volumes,
+    sample_targets,
+    shell_targets,
+    solve_muscles,
+)
 from jaxface.anatomy.rig import build_rig
 from jaxface.errors import RigError
 from jaxface.head import generic_head
@@ -62,7 +68,9 @@ def _rest_support(rig):
 def test_shell_targets_are_the_rest_tops_at_rest(rig):
     ms, G, a, ids, tg = _rest_support(rig)
     T = shell_targets(ms, ms.rest, ids, tg, fibre_thickening(ms, G, a))
-    np.testing.assert_allclose(np.asarray(T), np.asarray(ms.rest)[np.asarray(ms.shell_top)], atol=1e-4)
+    np.testing.assert_allclose(
+        np.asarray(T), np.asarray(ms.rest)[np.asarray(ms.shell_top)], atol=1e-4
+    )
 
 
 def test_shell_targets_are_finite_with_derivatives_on_collapsed_geometry(rig):
@@ -132,7 +140,9 @@ def test_the_modiolus_sits_at_the_rings_lateral_ends_for_any_sample_count(n):
     from jaxface.anatomy.muscles import _ring_end
 
     a, b = 28.0, 12.5
-    ring = ellipse_points(np.zeros(3), np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]), a, b, n)
+    ring = ellipse_points(
+        np.zeros(3), np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]), a, b, n
+    )
     assert np.array_equal(_ring_end(ring, 0.0), ring[0])
     right = _ring_end(ring, 0.5 * n)
     assert np.linalg.norm(right - [-a, 0.0, 0.0]) < (1e-12 if n % 2 == 0 else 0.2), (n, right)

@@ -17,7 +17,7 @@ from jaxface.anatomy.rig import build_rig, simulate, synthesize, synthesize_stat
 from jaxface.errors import RigError
 from jaxface.head import generic_head
 
-EPS = 1e-4          # finite-difference step (activations / degrees)
+EPS = 1e-4  # finite-difference step (activations / degrees)
 
 
 @pytest.fixture(scope="module")
@@ -28,7 +28,20 @@ def rig():
 def _case_list(rig):
     n = rig.n_controls
     cases = {"rest": (np.zeros(n), 0.0)}
-    for au in ("AU1", "AU2", "AU4", "AU7", "AU9", "AU12", "AU12L", "AU14", "AU15", "AU20", "AU43", "AU23"):
+    for au in (
+        "AU1",
+        "AU2",
+        "AU4",
+        "AU7",
+        "AU9",
+        "AU12",
+        "AU12L",
+        "AU14",
+        "AU15",
+        "AU20",
+        "AU43",
+        "AU23",
+    ):
         a, _, _ = facs.aus_to_controls({au: 1.0}, rig.muscle_names)
         cases[au] = (a, 0.0)
     for emo in facs.EMOTIONS:
@@ -38,7 +51,9 @@ def _case_list(rig):
     cases["pitch14"] = (np.zeros(n), 14.0)
     cases["pitch30"] = (np.zeros(n), 30.0)
     cases["pitch60"] = (np.zeros(n), 60.0)
-    a, j, _ = facs.aus_to_controls({"AU20": 1.0, "AU23": 1.0, "AU12": 1.0, "AU14": 1.0}, rig.muscle_names)
+    a, j, _ = facs.aus_to_controls(
+        {"AU20": 1.0, "AU23": 1.0, "AU12": 1.0, "AU14": 1.0}, rig.muscle_names
+    )
     cases["lips_stretched_open"] = (a, 16.0)
     rng = np.random.default_rng(0)
     a0 = np.clip(rng.uniform(0.0, 0.4, n), 0, 1)
@@ -64,8 +79,10 @@ def results(rig):
         return st.skin, st.muscles, st.R, st.t
 
     skin, mus, R, t = batch(A, P)
-    out = {k: (np.asarray(skin[i]), np.asarray(mus[i]), np.asarray(R[i]), np.asarray(t[i]))
-           for i, k in enumerate(names)}
+    out = {
+        k: (np.asarray(skin[i]), np.asarray(mus[i]), np.asarray(R[i]), np.asarray(t[i]))
+        for i, k in enumerate(names)
+    }
     return out, fd
 
 
@@ -102,23 +119,23 @@ def test_au12_moves_mouth_corners_up_and_out(rig, results):
 def test_brow_aus(rig, results):
     for side, sgn in (("left", 1), ("right", -1)):
         d1 = _disp(results, rig, "AU1", f"Inner {side} eyebrow")
-        assert d1[1] > 1.0, d1                                   # AU1 raises the inner brow
+        assert d1[1] > 1.0, d1  # AU1 raises the inner brow
         d2 = _disp(results, rig, "AU2", f"Outer {side} eyebrow")
-        assert d2[1] > 1.0, d2                                   # AU2 raises the outer brow
+        assert d2[1] > 1.0, d2  # AU2 raises the outer brow
         d4 = _disp(results, rig, "AU4", f"Inner {side} eyebrow")
-        assert d4[1] < -0.3 and sgn * d4[0] < -0.3, d4          # AU4: down and inward
+        assert d4[1] < -0.3 and sgn * d4[0] < -0.3, d4  # AU4: down and inward
 
 
 def test_lower_face_aus(rig, results):
     for side, sgn in (("Left", 1), ("Right", -1)):
         d15 = _disp(results, rig, "AU15", f"{side} mouth corner")
-        assert d15[1] < -0.5, d15                                # AU15 pulls the corners down
+        assert d15[1] < -0.5, d15  # AU15 pulls the corners down
         d20 = _disp(results, rig, "AU20", f"{side} mouth corner")
-        assert sgn * d20[0] > 0.5, d20                           # AU20 stretches outward
+        assert sgn * d20[0] > 0.5, d20  # AU20 stretches outward
         d9 = _disp(results, rig, "AU9", f"{side} nose peak")
-        assert d9[1] > 0.3, d9                                   # AU9 lifts the nose wings
+        assert d9[1] > 0.3, d9  # AU9 lifts the nose wings
     d23 = _disp(results, rig, "AU23", "Left mouth corner")
-    assert d23[0] < -0.3                                         # AU23 narrows the mouth
+    assert d23[0] < -0.3  # AU23 narrows the mouth
 
 
 def test_the_modiolus_carries_the_corner_muscles_pull_into_the_lips(rig):
@@ -140,7 +157,7 @@ def test_the_modiolus_carries_the_corner_muscles_pull_into_the_lips(rig):
     for side, sgn in (("Left", 1), ("Right", -1)):
         i = _lm(rig, f"{side} mouth corner")
         assert np.linalg.norm(off_x[i]) < 1.5, off_x[i]
-        assert on_x[i][2] < -3.0 and sgn * on_x[i][0] > 2.0, on_x[i]   # back along the teeth, out
+        assert on_x[i][2] < -3.0 and sgn * on_x[i][0] > 2.0, on_x[i]  # back along the teeth, out
         corners_z.append(on_x[i][2])
     lower, upper = _lm(rig, "Lower lip inner middle"), _lm(rig, "Upper lip inner middle")
     assert np.linalg.norm(off_x[lower]) < 0.1 and np.linalg.norm(off_x[upper]) < 0.1
@@ -153,21 +170,25 @@ def test_only_the_mouth_ring_has_a_modiolus(rig):
     zero on the eyes' rings, and on the mouth's ring they peak at its lateral ends: each side's
     strongest sample is nearer that side's mouth corner than any sample of the other half."""
     ms = rig.muscles
-    w = np.asarray(ms.mod_w)                                     # (rings, 3, n, 2)
+    w = np.asarray(ms.mod_w)  # (rings, 3, n, 2)
     ring_of = {rig.muscle_names[int(c)]: k for k, c in enumerate(np.asarray(ms.sph_ctrl))}
-    assert set(ring_of) == {"orbicularis_oculi_L", "orbicularis_oculi_R", "orbicularis_oris"}, ring_of
+    assert set(ring_of) == {"orbicularis_oculi_L", "orbicularis_oculi_R", "orbicularis_oris"}, (
+        ring_of
+    )
     bottom = np.asarray(ms.sph_bottom)
     rest = np.asarray(ms.rest)
     for name, k in ring_of.items():
         if name != "orbicularis_oris":
             assert np.all(w[k] == 0.0), name
             continue
-        pos = rest[bottom[k]]                                    # (3, n, 3)
+        pos = rest[bottom[k]]  # (3, n, 3)
         for s_, side in ((0, "Left"), (1, "Right")):
             c = rig.info.landmarks[f"{side} mouth corner"]
             best = np.unravel_index(np.argmax(w[k, ..., s_]), w[k, ..., s_].shape)
             d = np.linalg.norm(pos - c, axis=-1)
-            lateral = (pos[..., 0] - rig.info.landmarks["Lower lip inner middle"][0]) * (1 if s_ == 0 else -1)
+            lateral = (pos[..., 0] - rig.info.landmarks["Lower lip inner middle"][0]) * (
+                1 if s_ == 0 else -1
+            )
             assert lateral[best] > 0 and d[best] <= d[lateral < 0].min(), (side, best)
             assert w[k, ..., s_].max() > 0.3
 
@@ -187,17 +208,26 @@ def test_au43_closes_the_upper_lid(rig, results):
     assert (skin[lids, 1] - rest[lids, 1]).min() < -2.0
 
 
-@pytest.mark.parametrize("case,far", [("AU12", "upper"), ("AU15", "upper"), ("AU20", "upper"),
-                                      ("AU1", "lower"), ("AU2", "lower"), ("AU4", "lower"),
-                                      ("AU43", "lower")])
+@pytest.mark.parametrize(
+    "case,far",
+    [
+        ("AU12", "upper"),
+        ("AU15", "upper"),
+        ("AU20", "upper"),
+        ("AU1", "lower"),
+        ("AU2", "lower"),
+        ("AU4", "lower"),
+        ("AU43", "lower"),
+    ],
+)
 def test_nothing_far_away_moves(rig, results, case, far):
     fr = rig.info.frame
     loc = fr.to_local(np.asarray(rig.rest))
     d = np.linalg.norm(results[0][case][0] - np.asarray(rig.rest), axis=1)
     assert d.max() > 1.0
-    back = loc[:, 2] < -90.0                       # back of the head (behind the ears)
+    back = loc[:, 2] < -90.0  # back of the head (behind the ears)
     assert d[back].max() < 0.05
-    region = loc[:, 1] > 45.0 if far == "upper" else loc[:, 1] < -45.0   # forehead / mouth-chin
+    region = loc[:, 1] > 45.0 if far == "upper" else loc[:, 1] < -45.0  # forehead / mouth-chin
     assert d[region].max() < 0.1 * d.max() + 0.05, (case, d[region].max(), d.max())
 
 
@@ -263,11 +293,13 @@ def test_jaw_membrane_removes_the_crease_folds():
     fr = rig.info.frame
     chin_y = fr.to_local(fr.points["Chin middle"])[1]
     zero = jnp.zeros(rig.n_controls)
-    a, _, _ = facs.aus_to_controls({"AU20": 1.0, "AU23": 1.0, "AU12": 1.0, "AU14": 1.0}, rig.muscle_names)
+    a, _, _ = facs.aus_to_controls(
+        {"AU20": 1.0, "AU23": 1.0, "AU12": 1.0, "AU14": 1.0}, rig.muscle_names
+    )
     A = jnp.stack([zero, zero, zero, jnp.asarray(a)])
     P = jnp.asarray([0.0, 14.0, 18.0, 16.0])
     X = np.asarray(jax.jit(jax.vmap(lambda a, p: synthesize(rig, a, JawPose(p))))(A, P))
-    np.testing.assert_allclose(X[0], np.asarray(rig.rest), atol=1e-5)        # rest stays rest
+    np.testing.assert_allclose(X[0], np.asarray(rig.rest), atol=1e-5)  # rest stays rest
     for x in X[1:3]:
         assert len(_inverted_triangles(rig, x)) == 0
     # lips stretched with the jaw open: nothing folds under the chin (the mouth corners crease)
@@ -316,8 +348,12 @@ def test_lips_never_penetrate_the_teeth(rig, results):
 def test_contracting_muscles_bulge_and_keep_their_volume(rig, results):
     ms = rig.muscles
     v0 = np.asarray(muscle_volumes(ms, ms.rest))
-    for case, mus in (("AU12", "zygomaticus_major_L"), ("AU1", "frontalis_medial_L"),
-                      ("AU23", "orbicularis_oris"), ("AU26", "masseter_L")):
+    for case, mus in (
+        ("AU12", "zygomaticus_major_L"),
+        ("AU1", "frontalis_medial_L"),
+        ("AU23", "orbicularis_oris"),
+        ("AU26", "masseter_L"),
+    ):
         x = results[0][case][1]
         v = np.asarray(muscle_volumes(ms, jnp.asarray(x)))
         k = ms.names.index(mus)
@@ -328,7 +364,7 @@ def test_contracting_muscles_bulge_and_keep_their_volume(rig, results):
     half = (e - s) // 2
 
     def thick(x):
-        return np.linalg.norm(x[s + half:e] - x[s:s + half], axis=1).mean()
+        return np.linalg.norm(x[s + half : e] - x[s : s + half], axis=1).mean()
 
     assert thick(results[0]["AU12"][1]) > 1.1 * thick(np.asarray(ms.rest))
 
@@ -423,12 +459,12 @@ def test_ict_face_builds_and_animates(ict):
     smile = np.asarray(run(jnp.asarray(ramp[:, None] * a12[None]), zero))
     jaw = np.asarray(run(jnp.zeros((n, rig.n_controls)), jnp.asarray(8.0 * ramp)))
     rest = np.asarray(rig.rest)
-    np.testing.assert_allclose(smile[0], rest, atol=1e-6)          # starts at rest
+    np.testing.assert_allclose(smile[0], rest, atol=1e-6)  # starts at rest
     i = int(np.argmin(np.linalg.norm(rest - f.landmarks["Left mouth corner"], axis=1)))
     j = int(np.argmin(np.linalg.norm(rest - f.landmarks["Chin middle"], axis=1)))
     d = smile[-1, i] - rest[i]
-    assert d[1] > 0.5 and d[0] > 0.3, d                              # smile: corner up and out
-    assert jaw[-1, j, 1] - rest[j, 1] < -3.0                         # the jaw opened
+    assert d[1] > 0.5 and d[0] > 0.3, d  # smile: corner up and out
+    assert jaw[-1, j, 1] - rest[j, 1] < -3.0  # the jaw opened
     assert np.all(np.isfinite(smile)) and np.all(np.isfinite(jaw))
 
 
@@ -463,7 +499,9 @@ def test_jaw_opening_moves_the_skin_like_the_ict_jawopen_expression(ict):
     groups = [str(g) for g in d["group_names"]]
     T = np.asarray(d["triangles"])
     teeth = np.unique(T[np.asarray(d["triangle_group"]) == groups.index("teeth")])
-    moving = teeth[np.linalg.norm(delta[teeth], axis=1) > 0.3 * np.linalg.norm(delta[teeth], axis=1).max()]
+    moving = teeth[
+        np.linalg.norm(delta[teeth], axis=1) > 0.3 * np.linalg.norm(delta[teeth], axis=1).max()
+    ]
     V = rig.n_vertices
     for weight, max_mean in ((0.4, 3.2), (0.7, 4.4)):
         R, _ = _rigid_fit(X[moving], X[moving] + weight * delta[moving])
@@ -484,8 +522,9 @@ def test_expression_sheet_draws_the_heads_eyes(rig, tmp_path):
     from jaxface.anatomy.pictures import expression_sheet
 
     expr = [("AU26", {"AU26": 1.0})]
-    with_head = expression_sheet(tmp_path / "head.png", rig, expr, views=("front",), px=200,
-                                 head=generic_head())
+    with_head = expression_sheet(
+        tmp_path / "head.png", rig, expr, views=("front",), px=200, head=generic_head()
+    )
     skin_only = expression_sheet(tmp_path / "skin.png", rig, expr, views=("front",), px=200)
 
     def bluish(path):  # iris pixels: the skin is reddish, the irises blue-grey
@@ -494,7 +533,12 @@ def test_expression_sheet_draws_the_heads_eyes(rig, tmp_path):
 
     assert bluish(with_head) > 30 and bluish(skin_only) == 0
     with pytest.raises(RigError, match="skin vertices"):
-        expression_sheet(tmp_path / "bad.png", rig, expr, head=SimpleNamespace(mesh=SimpleNamespace(n_vertices=3)))
+        expression_sheet(
+            tmp_path / "bad.png",
+            rig,
+            expr,
+            head=SimpleNamespace(mesh=SimpleNamespace(n_vertices=3)),
+        )
 
 
 def test_teeth_hull_projection_matches_a_per_point_reference():
@@ -502,8 +546,8 @@ def test_teeth_hull_projection_matches_a_per_point_reference():
     every particle inside the hull (plus clearance) goes out along the normal of its nearest
     face, by exactly its depth; particles outside stay put."""
     from jaxface import pbd
-    from jaxface.anatomy.solver import fused_group
     from jaxface.anatomy.skin import _hull_project
+    from jaxface.anatomy.solver import fused_group
 
     rng = np.random.default_rng(3)
     hull_pts = rng.normal(size=(60, 3)) * np.array([20.0, 8.0, 6.0])
@@ -512,8 +556,11 @@ def test_teeth_hull_projection_matches_a_per_point_reference():
     ids = np.arange(0, 400, 2)  # half of the particles collide-able
     clearance = 0.5
     g = fused_group(pbd.hull_constraints(ids, N, d, clearance=clearance), len(x))
-    got = np.asarray(_hull_project(g, jnp.asarray(x, jnp.float32), jnp.asarray(N, jnp.float32),
-                                   jnp.asarray(d, jnp.float32)))
+    got = np.asarray(
+        _hull_project(
+            g, jnp.asarray(x, jnp.float32), jnp.asarray(N, jnp.float32), jnp.asarray(d, jnp.float32)
+        )
+    )
     want = x.copy()
     for i in ids:
         sd = N @ x[i] - d
@@ -528,7 +575,11 @@ def test_teeth_hull_projection_matches_a_per_point_reference():
 def _grid_mesh(n=9, jitter=0.0, seed=0):
     from jaxface.mesh import TriMesh
 
-    ij = np.stack(np.meshgrid(np.arange(n), np.arange(n), indexing="ij"), -1).reshape(-1, 2).astype(float)
+    ij = (
+        np.stack(np.meshgrid(np.arange(n), np.arange(n), indexing="ij"), -1)
+        .reshape(-1, 2)
+        .astype(float)
+    )
     rng = np.random.default_rng(seed)
     inner = (ij > 0).all(1) & (ij < n - 1).all(1)
     ij[inner] += jitter * rng.uniform(-0.3, 0.3, (inner.sum(), 2))
@@ -578,10 +629,10 @@ def test_footprint_with_one_sigma_per_vertex_matches_the_scalar_rows_and_blends_
     mesh, _ = _grid_mesh(jitter=1.0)
     sig = np.where(mesh.vertices[:, 1] > np.median(mesh.vertices[:, 1]), 14.0, 6.0)
     M = footprint_matrix(mesh, sig).toarray()
-    nnz = (M > 0).sum(axis=1)                   # rows reach past the neighbours, wider for 14
+    nnz = (M > 0).sum(axis=1)  # rows reach past the neighbours, wider for 14
     assert nnz[sig == 14.0].mean() > nnz[sig == 6.0].mean() > 4
     for s in (6.0, 14.0):
-        ref = footprint_matrix(mesh, s).toarray()   # the scalar path, row by row
+        ref = footprint_matrix(mesh, s).toarray()  # the scalar path, row by row
         rows = np.flatnonzero(sig == s)
         np.testing.assert_allclose(M[rows], ref[rows], atol=1e-12)
     np.testing.assert_allclose(M.sum(axis=1), 1.0)
@@ -612,25 +663,27 @@ def test_footprint_clusters_stay_within_their_radius_and_the_operator_matches_th
 
     from jaxface.anatomy.skin import footprint_clusters, footprint_matrix, footprint_operator
 
-    mesh, _ = _grid_mesh(n=15, jitter=1.0)      # 10 mm grid
+    mesh, _ = _grid_mesh(n=15, jitter=1.0)  # 10 mm grid
     X = mesh.vertices
     h = 25.0
     P = footprint_clusters(mesh, h)
     np.testing.assert_allclose(np.asarray(P.sum(axis=1)).ravel(), 1.0)
     cluster = np.asarray(P.argmax(axis=1)).ravel()
-    assert np.all(P.max(axis=1).toarray().ravel() == 1.0)     # no mirror: one cluster each
+    assert np.all(P.max(axis=1).toarray().ravel() == 1.0)  # no mirror: one cluster each
     C = P.shape[1]
     assert 20 < C < len(X) // 2
     e = mesh.edges
     L = np.linalg.norm(X[e[:, 0]] - X[e[:, 1]], axis=1)
-    g = sp.coo_matrix((np.r_[L, L], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(len(X),) * 2)
+    g = sp.coo_matrix(
+        (np.r_[L, L], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(len(X),) * 2
+    )
     D = dijkstra(g.tocsr(), directed=False)
     # every vertex lies within h/2 of its centre along the surface: a cluster's members lie
     # within h of each other
     for c in range(C):
         m = np.flatnonzero(cluster == c)
         assert D[np.ix_(m, m)].max() <= h + 1e-9
-    sig = np.where(X[:, 1] > 70.0, 40.0, 20.0)   # 40 mm rows use clusters, 20 mm rows do not
+    sig = np.where(X[:, 1] > 70.0, 40.0, 20.0)  # 40 mm rows use clusters, 20 mm rows do not
     wide = sig >= 1.5 * h
     op = footprint_operator(mesh, sig, cluster_mm=h)
     F = footprint_matrix(mesh, sig).toarray()
@@ -675,8 +728,9 @@ def test_clustered_footprint_synthesises_what_the_exact_one_does(rig):
     info = rig.info
     m = mirror_vertices(info.skin, info.frame)
     assert m is not None
-    op = footprint_operator(info.skin, footprint_sigma(info.skin, info.frame, (10.0, 5.0)), cluster_mm=5.0,
-                            mirror=m)
+    op = footprint_operator(
+        info.skin, footprint_sigma(info.skin, info.frame, (10.0, 5.0)), cluster_mm=5.0, mirror=m
+    )
     d = np.random.default_rng(0).normal(size=(len(m), 3))
     np.testing.assert_allclose(op.apply(d[m]), op.apply(d)[m], atol=1e-12)
     Xc, Xe = run(rig), run(exact)
@@ -699,7 +753,9 @@ def test_fat_thickness_keeps_the_layer_volume_and_stays_finite():
         ref[t] += a
     a0 = vertex_areas(S0, T, n)
     np.testing.assert_allclose(a0, ref, rtol=1e-12)
-    np.testing.assert_allclose(np.asarray(vertex_areas(jnp.asarray(S0), jnp.asarray(T), n, xp=jnp)), ref, rtol=1e-9)
+    np.testing.assert_allclose(
+        np.asarray(vertex_areas(jnp.asarray(S0), jnp.asarray(T), n, xp=jnp)), ref, rtol=1e-9
+    )
 
     def factor(S, gain=1.0):
         return np.asarray(fat_thickness(jnp.asarray(S), jnp.asarray(T), a0, gain))
@@ -711,11 +767,15 @@ def test_fat_thickness_keeps_the_layer_volume_and_stays_finite():
     f = factor(sq)
     np.testing.assert_allclose(f, 1.0 / 0.7, rtol=1e-9)
     area = trimesh.Trimesh(sq, T, process=False).area
-    np.testing.assert_allclose(area * 5.0 * f.mean(), trimesh.Trimesh(S0, T, process=False).area * 5.0, rtol=1e-9)
+    np.testing.assert_allclose(
+        area * 5.0 * f.mean(), trimesh.Trimesh(S0, T, process=False).area * 5.0, rtol=1e-9
+    )
     np.testing.assert_allclose(factor(sq, 0.5), np.sqrt(1.0 / 0.7), rtol=1e-9)
     np.testing.assert_allclose(factor(sq, 0.0), 1.0, rtol=1e-12)
     # stretched 3x: thins, but at most to the range's lower bound
-    np.testing.assert_allclose(factor(S0 * np.array([3.0, 1.0, 1.0])), FAT_RATIO_RANGE[0], rtol=1e-9)
+    np.testing.assert_allclose(
+        factor(S0 * np.array([3.0, 1.0, 1.0])), FAT_RATIO_RANGE[0], rtol=1e-9
+    )
     # a local squeeze moves only the vertices whose triangles changed
     loc = S0.copy()
     k = np.argmin(np.linalg.norm(S0 - S0.mean(0), axis=1))
@@ -759,11 +819,11 @@ def test_a_symmetric_face_gets_a_symmetric_rig(rig, results):
     flip = np.array([-1.0, 1.0, 1.0])
     R = fr.to_local(np.asarray(rig.rest))
     d, mirror = cKDTree(R).query(R * flip)
-    assert d.max() < 1e-9                                      # the head is symmetric
+    assert d.max() < 1e-9  # the head is symmetric
     placed = {p.spec.name: p for p in info.placed}
     n_pairs = 0
     for name, p in placed.items():
-        if not name.endswith("_L") or p.mesh is None:            # eyelids have no mesh
+        if not name.endswith("_L") or p.mesh is None:  # eyelids have no mesh
             continue
         q = placed[name[:-2] + "_R"]
         A, B = fr.to_local(p.mesh.vertices), fr.to_local(q.mesh.vertices) * flip
@@ -779,7 +839,7 @@ def test_a_symmetric_face_gets_a_symmetric_rig(rig, results):
     def mirrored(n):
         return n[:-2] + {"_L": "_R", "_R": "_L"}[n[-2:]] if n[-2:] in ("_L", "_R") else n
 
-    off_mid = np.flatnonzero(np.abs(R[:, 0]) > 1e-6)          # a mid-line vertex picks a side
+    off_mid = np.flatnonzero(np.abs(R[:, 0]) > 1e-6)  # a mid-line vertex picks a side
     assert all(mirrored(names[surf[i]]) == names[surf[mirror[i]]] for i in off_mid)
     # a symmetric expression moves the skin symmetrically. Before every sphincter ring sample
     # took both modioli's pulls (not only its nearer side's), a full AU12 moved the lip mid-line
@@ -788,7 +848,9 @@ def test_a_symmetric_face_gets_a_symmetric_rig(rig, results):
     # the right eye's 33 mm, and AU6 was 0.43 mm asymmetric.
     # Muscles lying across the mid-line (procerus on both frontales) bind each mid-line
     # particle to one side: measured 0.13 mm (AU1), 0.04 mm (AU4), 0.03 mm (AU9)
-    tol = dict.fromkeys(("AU2", "AU12", "AU15", "AU20", "AU23", "AU43", "pitch14", "lips_stretched_open"), 1e-6)
+    tol = dict.fromkeys(
+        ("AU2", "AU12", "AU15", "AU20", "AU23", "AU43", "pitch14", "lips_stretched_open"), 1e-6
+    )
     tol.update(dict.fromkeys(("AU1", "AU4", "AU9"), 0.2))
     for case, most in tol.items():
         D = fr.to_local(results[0][case][0]) - R

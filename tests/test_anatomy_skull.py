@@ -5,9 +5,17 @@ import numpy as np
 import pytest
 
 from jaxface.anatomy.frame import face_frame
-from jaxface.anatomy.skull import (TISSUE_DEPTH_MM, depth_sites, enrich_correspondences,
-                                   estimate_skull, fit_skull, load_artisynth_skull, load_skull,
-                                   mandible_mask, tissue_depth)
+from jaxface.anatomy.skull import (
+    TISSUE_DEPTH_MM,
+    depth_sites,
+    enrich_correspondences,
+    estimate_skull,
+    fit_skull,
+    load_artisynth_skull,
+    load_skull,
+    mandible_mask,
+    tissue_depth,
+)
 from jaxface.errors import DataNotFoundError
 from jaxface.head import generic_head
 from jaxface.landmarks import Landmarks
@@ -67,9 +75,18 @@ def test_estimated_skull_is_inside_and_split(head, skull):
     gap = np.linalg.norm(head.mesh.vertices - off, axis=1)
     assert np.median(np.abs(gap - skull.extras["depth"])) < 1.5
     fr = face_frame(head.landmarks)
-    m = mandible_mask(np.stack([fr.points["Chin middle"], fr.points["Lower lip outer middle"],
-                                fr.points["Nose tip"], fr.points["Inner left eyebrow"],
-                                fr.points["Upper lip outer middle"]]), fr)
+    m = mandible_mask(
+        np.stack(
+            [
+                fr.points["Chin middle"],
+                fr.points["Lower lip outer middle"],
+                fr.points["Nose tip"],
+                fr.points["Inner left eyebrow"],
+                fr.points["Upper lip outer middle"],
+            ]
+        ),
+        fr,
+    )
     assert m.tolist() == [True, True, False, False, False]
     assert skull.source == "estimated" and skull.mandible.n_triangles > 100
 
@@ -89,7 +106,7 @@ def test_fit_skull_reproduces_a_similarity(head, skull):
     fitted = fit_skull(skull, head.mesh, head.landmarks, skin2, lm2)
     np.testing.assert_allclose(fitted.cranium.vertices, f(skull.cranium.vertices), atol=1e-4)
     np.testing.assert_allclose(fitted.mandible.vertices, f(skull.mandible.vertices), atol=1e-4)
-    assert fitted.thickness_scale == pytest.approx(1.1, rel=0.02)     # bounding-box diagonals
+    assert fitted.thickness_scale == pytest.approx(1.1, rel=0.02)  # bounding-box diagonals
     extra = enrich_correspondences(head.mesh, head.landmarks)
     _, dist = head.mesh.closest_points(extra)
     assert extra.shape == (16, 3) and dist.max() < 1e-6
@@ -98,11 +115,11 @@ def test_fit_skull_reproduces_a_similarity(head, skull):
 def test_artisynth_skull_in_mm_and_jaxface_axes(shared):
     sk = load_artisynth_skull(shared("data", "artisynth"))
     ext = np.ptp(sk.cranium.vertices, axis=0)
-    assert 100 < ext.max() < 300                                # metres -> mm
+    assert 100 < ext.max() < 300  # metres -> mm
     c, m = sk.cranium.vertices, sk.mandible.vertices
-    assert m[:, 1].mean() < c[:, 1].mean()                      # the jaw is below
-    assert m[:, 2].max() > c[:, 2].mean()                       # the chin is in front (+z)
-    assert abs(c[:, 0].mean()) < 5.0                            # symmetric about x = 0
+    assert m[:, 1].mean() < c[:, 1].mean()  # the jaw is below
+    assert m[:, 2].max() > c[:, 2].mean()  # the chin is in front (+z)
+    assert abs(c[:, 0].mean()) < 5.0  # symmetric about x = 0
 
 
 def test_user_skull_errors(tmp_path):

@@ -19,7 +19,6 @@ from jaxface.anatomy.skin import solve_skin
 from jaxface.anatomy.solver import iterate
 from jaxface.head import generic_head
 
-
 #: Largest equilibrium gap (mm) the `converged` sweep preset may leave on the default head.
 GAP_CONVERGED_MM = 0.1
 
@@ -41,7 +40,7 @@ def _jacobi_problem(n=40, seed=0):
 
 def test_chebyshev_converges_to_the_analytic_solution_much_faster_than_plain_sweeps():
     step, exact, rho, _ = _jacobi_problem()
-    assert 0.95 < rho < 1.0            # a slow problem for the plain iteration
+    assert 0.95 < rho < 1.0  # a slow problem for the plain iteration
     u0 = jnp.zeros_like(jnp.asarray(exact))
     err = lambda u: float(np.abs(np.asarray(u) - exact).max())  # noqa: E731
     plain = err(iterate(step, u0, 60))
@@ -52,7 +51,9 @@ def test_chebyshev_converges_to_the_analytic_solution_much_faster_than_plain_swe
     ref = u0
     for _ in range(25):
         ref = step(ref)
-    np.testing.assert_allclose(np.asarray(iterate(step, u0, 25)), np.asarray(ref), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(
+        np.asarray(iterate(step, u0, 25)), np.asarray(ref), rtol=0, atol=1e-12
+    )
     # the fixed point does not depend on rho
     np.testing.assert_allclose(np.asarray(iterate(step, u0, 400, rho=0.9)), exact, atol=1e-8)
 
@@ -60,7 +61,7 @@ def test_chebyshev_converges_to_the_analytic_solution_much_faster_than_plain_swe
 def test_chebyshev_result_ends_with_a_plain_step_and_is_differentiable():
     step0, _, rho, f = _jacobi_problem(n=12)
 
-    def step(u):                   # a unilateral projection last, like the teeth collisions
+    def step(u):  # a unilateral projection last, like the teeth collisions
         return jnp.maximum(step0(u), -0.05)
 
     u = iterate(step, jnp.zeros((12, 3)), 30, rho=rho)
@@ -94,8 +95,8 @@ def test_checkpointed_sweeps_change_no_value_and_no_derivative(rho):
     assert abs(g_on - fd) < 1e-6 * max(1.0, abs(fd))
     # the checkpoint is in the program: the reverse pass recomputes the sweep (a remat)
     jaxpr = str(jax.make_jaxpr(jax.grad(loss), static_argnums=1)(1.0, True))
-    assert ("remat" in jaxpr or "checkpoint" in jaxpr)
-    assert not ("remat" in str(jax.make_jaxpr(jax.grad(loss), static_argnums=1)(1.0, False)))
+    assert "remat" in jaxpr or "checkpoint" in jaxpr
+    assert "remat" not in str(jax.make_jaxpr(jax.grad(loss), static_argnums=1)(1.0, False))
 
 
 def test_bad_spectral_radius_is_refused():
@@ -112,7 +113,11 @@ def head_rig():
 
 
 def _case(rig, aus, pitch):
-    a, _, _ = facs.aus_to_controls(aus, rig.muscle_names) if aus else (np.zeros(rig.n_controls), None, None)
+    a, _, _ = (
+        facs.aus_to_controls(aus, rig.muscle_names)
+        if aus
+        else (np.zeros(rig.n_controls), None, None)
+    )
     st = synthesize_state(rig, jnp.asarray(a), JawPose(jnp.asarray(pitch)))
     solve = eqx.filter_jit(lambda sk, x0=None: solve_skin(sk, st.targets, st.R, st.t, x0=x0))
     return st, solve
@@ -169,28 +174,30 @@ def test_with_iterations_refuses_bad_sweeps_and_radii(head_rig):
         head_rig.with_iterations(muscles=0)
     r = head_rig.with_iterations(skin=20, skin_rho=0.95)
     assert (r.skin.iterations, r.skin.chebyshev_rho) == (20, 0.95)
-    assert (head_rig.skin.iterations, head_rig.skin.chebyshev_rho) == (8, 0.0)   # a copy
-    assert head_rig.skin.checkpoint and not head_rig.muscles.checkpoint    # the defaults
+    assert (head_rig.skin.iterations, head_rig.skin.chebyshev_rho) == (8, 0.0)  # a copy
+    assert head_rig.skin.checkpoint and not head_rig.muscles.checkpoint  # the defaults
     off = head_rig.with_iterations(checkpoint=False)
     assert not off.skin.checkpoint and not off.muscles.checkpoint
     assert head_rig.with_iterations(checkpoint=True).muscles.checkpoint
     assert off.skin.iterations == head_rig.skin.iterations
 
 
-def test_equilibrium_gap_is_zero_at_rest_and_matches_a_deep_solve_where_the_equilibrium_is_unique(head_rig):
+def test_equilibrium_gap_is_zero_at_rest_and_matches_a_deep_solve_where_the_equilibrium_is_unique(
+    head_rig,
+):
     """Jaw open 10 degrees on the default head has one equilibrium (see the test above), so
     what the default sweeps leave to go must equal their distance to a deep solve from rest."""
     rig = head_rig
     zero = jnp.zeros(rig.n_controls, jnp.float32)
     sweeps = (200, 1500)
     rest = equilibrium_gap(rig, zero, JawPose(jnp.asarray(0.0, jnp.float32)), sweeps=sweeps)
-    assert float(rest.max()) < 1e-4                             # the rest state is an equilibrium
+    assert float(rest.max()) < 1e-4  # the rest state is an equilibrium
     jaw = JawPose(jnp.asarray(10.0, jnp.float32))
     x = np.asarray(synthesize(rig, zero, jaw))
     deep = np.asarray(synthesize(rig.with_iterations(muscles=200, skin=1500), zero, jaw))
     d = np.linalg.norm(x - deep, axis=1)
     g = np.asarray(equilibrium_gap(rig, zero, jaw, sweeps=sweeps))
-    assert d.max() > 0.1, d.max()                               # the default sweeps leave something
+    assert d.max() > 0.1, d.max()  # the default sweeps leave something
     np.testing.assert_allclose(g, d, atol=0.03 * d.max())
 
 
@@ -218,7 +225,7 @@ def test_the_converged_preset_ends_at_an_equilibrium(head_rig):
         return np.asarray(jax.jit(jax.vmap(one))(A, P))
 
     g_default, g_conv = gaps(rig), gaps(conv)
-    assert g_default.min() > 0.5, g_default                     # the cases are not trivial
+    assert g_default.min() > 0.5, g_default  # the cases are not trivial
     assert g_conv.max() < GAP_CONVERGED_MM, (g_conv, g_default)
     # a tenth at most (happiness, with the malaris: 0.028 of the default's 0.51 mm; the others
     # 0.7-1.7 %)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 import struct
-from functools import lru_cache
+from functools import cache
 
 import numpy as np
 import pytest
@@ -37,8 +37,13 @@ DATA = ("data", "bosphorus_style")
 
 def _bnt_bytes(nrows, ncols, planes, zmin=-1e9, name=b"img.png", count=None):
     count = 5 * nrows * ncols if count is None else count
-    return (struct.pack("<HHd", nrows, ncols, zmin) + struct.pack("<H", len(name)) + name
-            + struct.pack("<I", count) + np.ascontiguousarray(planes, dtype="<f8").tobytes())
+    return (
+        struct.pack("<HHd", nrows, ncols, zmin)
+        + struct.pack("<H", len(name))
+        + name
+        + struct.pack("<I", count)
+        + np.ascontiguousarray(planes, dtype="<f8").tobytes()
+    )
 
 
 def _synthetic_grid(nrows=60, ncols=50, step=1.0, hole=True):
@@ -46,10 +51,10 @@ def _synthetic_grid(nrows=60, ncols=50, step=1.0, hole=True):
     x = (np.arange(ncols) - ncols / 2) * step
     y = (np.arange(nrows) - nrows / 2) * step
     X, Y = np.meshgrid(x, y)
-    Z = 100.0 - 0.01 * (X ** 2 + Y ** 2)
+    Z = 100.0 - 0.01 * (X**2 + Y**2)
     xyz = np.stack([X, Y, Z], -1)
     valid = np.ones((nrows, ncols), bool)
-    valid[:3, :] = False            # background stripe at the bottom
+    valid[:3, :] = False  # background stripe at the bottom
     if hole:
         valid[30:34, 20:23] = False  # a hole
     return xyz, valid
@@ -59,7 +64,8 @@ def _synthetic_grid(nrows=60, ncols=50, step=1.0, hole=True):
 # shared data
 # ------------------------------------------------------------------------------------------
 
-@lru_cache(maxsize=None)
+
+@cache
 def _truth(path):
     import trimesh
 
@@ -93,8 +99,15 @@ def test_read_all_shared_bnt(shared):
 
 
 @pytest.mark.data
-@pytest.mark.parametrize("stem,tol", [("bs900_N_N_0", 1e-6), ("bs900_LFAU_12_0", 1e-6),
-                                      ("bs901_N_N_0", 0.12), ("bs901_UFAU_4_0", 0.12)])
+@pytest.mark.parametrize(
+    "stem,tol",
+    [
+        ("bs900_N_N_0", 1e-6),
+        ("bs900_LFAU_12_0", 1e-6),
+        ("bs901_N_N_0", 0.12),
+        ("bs901_UFAU_4_0", 0.12),
+    ],
+)
 def test_points_lie_on_truth_mesh(shared, stem, tol):
     import trimesh
 
@@ -172,6 +185,7 @@ def test_load_mesh_scan_with_lm3(shared):
 # round trips and meshing on synthetic grids
 # ------------------------------------------------------------------------------------------
 
+
 def test_bnt_write_read_round_trip(tmp_path):
     xyz, valid = _synthetic_grid()
     s = Scan.from_grid(xyz, valid, image_name="synthetic.png")
@@ -227,8 +241,16 @@ def test_meshing_orientation_independent_of_grid_direction():
 
 def test_lm2_round_trip(tmp_path):
     names = FACE_LABELS[:5] + ("Nose tip",)
-    px = np.array([[512.25, 390.0], [600.5, 380.125], [700.0, 395.0], [800.0, 395.0],
-                   [900.0, 381.0], [751.5, 620.75]])
+    px = np.array(
+        [
+            [512.25, 390.0],
+            [600.5, 380.125],
+            [700.0, 395.0],
+            [800.0, 395.0],
+            [900.0, 381.0],
+            [751.5, 620.75],
+        ]
+    )
     write_lm2(tmp_path / "a.lm2", ImageLandmarks(names, px))
     text = (tmp_path / "a.lm2").read_text().splitlines()
     # labels first, then coordinates
@@ -242,13 +264,16 @@ def test_lm2_round_trip(tmp_path):
         r["Chin middle"]
 
 
-@pytest.mark.parametrize("text,why", [
-    ("# c\n\n2 landmarks:\nLabels:\nA\nB\n2D Image coordinates:\n1 2\n", "ends after"),
-    ("# c\n\n2 landmarks:\nA\nB\n2D Image coordinates:\n1 2\n3 4\n", "Labels"),
-    ("# c\n\n2 landmarks:\nLabels:\nA\nB\n2D Image coordinates:\n1 2\n3 x\n", "cannot read"),
-    ("# c\n\n2 landmarks:\nLabels:\nA\nB\nC\n2D Image coordinates:\n1 2\n3 4\n", "2D Image"),
-    ("# c\n\nlandmarks\n", "landmarks:"),
-])
+@pytest.mark.parametrize(
+    "text,why",
+    [
+        ("# c\n\n2 landmarks:\nLabels:\nA\nB\n2D Image coordinates:\n1 2\n", "ends after"),
+        ("# c\n\n2 landmarks:\nA\nB\n2D Image coordinates:\n1 2\n3 4\n", "Labels"),
+        ("# c\n\n2 landmarks:\nLabels:\nA\nB\n2D Image coordinates:\n1 2\n3 x\n", "cannot read"),
+        ("# c\n\n2 landmarks:\nLabels:\nA\nB\nC\n2D Image coordinates:\n1 2\n3 4\n", "2D Image"),
+        ("# c\n\nlandmarks\n", "landmarks:"),
+    ],
+)
 def test_lm2_malformed(tmp_path, text, why):
     p = tmp_path / "bad.lm2"
     p.write_text(text)
@@ -260,6 +285,7 @@ def test_lm2_malformed(tmp_path, text, why):
 # ------------------------------------------------------------------------------------------
 # bad input
 # ------------------------------------------------------------------------------------------
+
 
 def _good_file(tmp_path):
     xyz, valid = _synthetic_grid()
@@ -280,8 +306,9 @@ def test_truncated_bnt(tmp_path, cut):
 
 def test_wrong_count_field(tmp_path):
     xyz, valid = _synthetic_grid()
-    planes = np.concatenate([np.moveaxis(np.where(valid[..., None], xyz, -1e9), -1, 0),
-                             np.zeros((2,) + valid.shape)])
+    planes = np.concatenate(
+        [np.moveaxis(np.where(valid[..., None], xyz, -1e9), -1, 0), np.zeros((2,) + valid.shape)]
+    )
     p = tmp_path / "count.bnt"
     p.write_bytes(_bnt_bytes(60, 50, planes, count=4 * 60 * 50))
     with pytest.raises(ScanFormatError, match="wrong count field 12000") as e:
@@ -308,8 +335,9 @@ def test_all_background(tmp_path):
 
 def test_nan_in_valid_points(tmp_path):
     xyz, valid = _synthetic_grid()
-    planes = np.concatenate([np.moveaxis(np.where(valid[..., None], xyz, -1e9), -1, 0),
-                             np.zeros((2,) + valid.shape)])
+    planes = np.concatenate(
+        [np.moveaxis(np.where(valid[..., None], xyz, -1e9), -1, 0), np.zeros((2,) + valid.shape)]
+    )
     planes[2, 40, 7] = np.nan
     p = tmp_path / "nan.bnt"
     p.write_bytes(_bnt_bytes(60, 50, planes))
@@ -341,6 +369,7 @@ def test_wrong_units_detected(tmp_path):
 # landmarks on scans
 # ------------------------------------------------------------------------------------------
 
+
 def _write_lm3_without(src, dst, drop):
     from jaxface.landmarks import read_lm3, write_lm3
 
@@ -358,8 +387,11 @@ def test_missing_landmarks_reported_required_raise(shared, tmp_path):
         s = load_scan(shared(*DATA, stem + ".bnt"), landmarks=lm_path)
     assert set(s.missing_landmarks) == {"Left mouth corner", "Chin middle"}
     with pytest.raises(LandmarkError) as e:
-        load_scan(shared(*DATA, stem + ".bnt"), landmarks=lm_path,
-                  require=("Nose tip", "Chin middle", "Left mouth corner"))
+        load_scan(
+            shared(*DATA, stem + ".bnt"),
+            landmarks=lm_path,
+            require=("Nose tip", "Chin middle", "Left mouth corner"),
+        )
     assert set(e.value.missing) == {"Chin middle", "Left mouth corner"}
     assert "partial" not in str(e.value) or "Chin middle" in str(e.value)
     # workaround: the mouth corner is mirrored from the right one (bs900 is symmetric);
@@ -375,21 +407,25 @@ def test_missing_landmarks_reported_required_raise(shared, tmp_path):
 # file names
 # ------------------------------------------------------------------------------------------
 
-@pytest.mark.parametrize("name,kind,aus,sides,pose,occl", [
-    ("bs000_N_N_0.bnt", "N", (), (), False, False),
-    ("bs012_LFAU_12L_0", "LFAU", (12,), ("L",), False, False),
-    ("bs012_LFAU_12R_1.lm3", "LFAU", (12,), ("R",), False, False),
-    ("bs012_LFAU_12LW_0", "LFAU", (12,), ("L",), False, False),
-    ("bs012_UFAU_43_0", "UFAU", (43,), (None,), False, False),
-    ("bs012_CAU_A22A25_0", "CAU", (22, 25), (None, None), False, False),
-    ("bs012_CAU_A26A12lw_0", "CAU", (26, 12), (None, "L"), False, False),
-    ("bs012_E_SURPRISE_0", "E", (1, 2, 5, 26), (None,) * 4, False, False),
-    ("bs012_YR_R10_0", "YR", (), (), True, False),
-    ("bs012_PR_SD_0", "PR", (), (), True, False),
-    ("bs012_CR_RU_0", "CR", (), (), True, False),
-    ("bs012_O_GLASSES_0", "O", (), (), False, True),
-    ("/some/dir/bs900_LFAU_12_0.truth.ply", "LFAU", (12,), (None,), False, False),
-])
+
+@pytest.mark.parametrize(
+    "name,kind,aus,sides,pose,occl",
+    [
+        ("bs000_N_N_0.bnt", "N", (), (), False, False),
+        ("bs012_LFAU_12L_0", "LFAU", (12,), ("L",), False, False),
+        ("bs012_LFAU_12R_1.lm3", "LFAU", (12,), ("R",), False, False),
+        ("bs012_LFAU_12LW_0", "LFAU", (12,), ("L",), False, False),
+        ("bs012_UFAU_43_0", "UFAU", (43,), (None,), False, False),
+        ("bs012_CAU_A22A25_0", "CAU", (22, 25), (None, None), False, False),
+        ("bs012_CAU_A26A12lw_0", "CAU", (26, 12), (None, "L"), False, False),
+        ("bs012_E_SURPRISE_0", "E", (1, 2, 5, 26), (None,) * 4, False, False),
+        ("bs012_YR_R10_0", "YR", (), (), True, False),
+        ("bs012_PR_SD_0", "PR", (), (), True, False),
+        ("bs012_CR_RU_0", "CR", (), (), True, False),
+        ("bs012_O_GLASSES_0", "O", (), (), False, True),
+        ("/some/dir/bs900_LFAU_12_0.truth.ply", "LFAU", (12,), (None,), False, False),
+    ],
+)
 def test_parse_scan_name(name, kind, aus, sides, pose, occl):
     info = parse_scan_name(name)
     assert info.kind == kind
@@ -416,6 +452,7 @@ def test_parse_scan_name_rejects():
 # ------------------------------------------------------------------------------------------
 # preprocessing: rigid alignment (jaxface.io.preprocess)
 # ------------------------------------------------------------------------------------------
+
 
 def _rigid_from_truth(entry):
     from jaxface.io.preprocess import RigidTransform
@@ -460,7 +497,9 @@ def test_align_expression_scan_to_neutral(shared, code):
     scan = load_scan(shared(*DATA, stem + ".bnt"))
     tn = np.asarray(_truth(shared(*DATA, "bs901_N_N_0.truth.ply")).vertices)
     te = np.asarray(_truth(shared(*DATA, stem + ".truth.ply")).vertices)
-    T_true = _rigid_from_truth(truth["bs901_N_N_0"]).compose(_rigid_from_truth(truth[stem]).inverse())
+    T_true = _rigid_from_truth(truth["bs901_N_N_0"]).compose(
+        _rigid_from_truth(truth[stem]).inverse()
+    )
     still = np.linalg.norm(T_true.apply(te) - tn, axis=1) < 0.01
     still[9409:] = False  # face region only
     still &= (np.linalg.norm(tn - tn[4857], axis=1) < 80) & (tn[:, 2] > 60)

@@ -16,8 +16,14 @@ from jaxface.cli import EXIT_ERROR, EXIT_MISSING, EXIT_USAGE, handle_errors
 
 def run_cli(*args, cwd=None, timeout=300):
     env = dict(os.environ, MPLBACKEND="Agg")
-    return subprocess.run([sys.executable, "-m", "jaxface.cli", *map(str, args)], capture_output=True,
-                          text=True, cwd=cwd, env=env, timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-m", "jaxface.cli", *map(str, args)],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        env=env,
+        timeout=timeout,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -30,10 +36,17 @@ def demo_dir(tmp_path_factory):
 def test_demo_writes_its_files(demo_dir):
     out, proc = demo_dir
     assert proc.returncode == 0, proc.stderr
-    names = {"head.ply", "head.lm3", "head.png", "upper_teeth.ply", "lower_teeth.ply", "eye_left.ply",
-             "eye_right.ply"}
+    names = {
+        "head.ply",
+        "head.lm3",
+        "head.png",
+        "upper_teeth.ply",
+        "lower_teeth.ply",
+        "eye_left.ply",
+        "eye_right.ply",
+    }
     assert names <= {p.name for p in out.iterdir()}
-    assert "report.md" in proc.stderr            # the summary names the report
+    assert "report.md" in proc.stderr  # the summary names the report
 
 
 def test_demo_showcase_report(demo_dir):
@@ -46,8 +59,9 @@ def test_demo_showcase_report(demo_dir):
 
     out, _ = demo_dir
     rep = json.loads((out / "report.json").read_text())
-    for name in ["emotions.png", "aus.png", "muscle_map.png", "jaw.png", "report.md"] + [f"emotion_{e}.png" for e in
-                                                           ("happiness", "sadness", "surprise", "fear", "anger", "disgust")]:
+    for name in ["emotions.png", "aus.png", "muscle_map.png", "jaw.png", "report.md"] + [
+        f"emotion_{e}.png" for e in ("happiness", "sadness", "surprise", "fear", "anger", "disgust")
+    ]:
         assert (out / name).stat().st_size > 1000, name
     assert [f["stem"] for f in rep["fits"]] == list(SYNTHETIC_SCANS)
     for f in rep["fits"]:
@@ -73,16 +87,16 @@ def test_demo_files_load_back(demo_dir):
     mesh = load_mesh(out / "head.ply", units="mm")
     assert mesh.n_vertices == head.mesh.n_vertices
     np.testing.assert_array_equal(mesh.triangles, head.mesh.triangles)
-    np.testing.assert_allclose(mesh.vertices, head.mesh.vertices, atol=1e-3)   # float32 PLY
+    np.testing.assert_allclose(mesh.vertices, head.mesh.vertices, atol=1e-3)  # float32 PLY
     lm = read_lm3(out / "head.lm3")
     assert tuple(lm.names) == tuple(BOSPHORUS_LABELS)
     np.testing.assert_allclose(lm.positions, head.landmarks.positions, atol=1e-5)
     for name, part in (("upper_teeth", head.upper_teeth), ("eye_left", head.eyes[0])):
-        m = load_mesh(out / f"{name}.ply", check_size=False)    # small parts (25-55 mm)
+        m = load_mesh(out / f"{name}.ply", check_size=False)  # small parts (25-55 mm)
         assert m.n_vertices == part.n_vertices
     img = imread(out / "head.png")
-    assert img.ndim == 3 and img.shape[1] > img.shape[0]          # two panels side by side
-    assert (img[..., :3].mean(axis=2) < 0.9).mean() > 0.05         # not a blank picture
+    assert img.ndim == 3 and img.shape[1] > img.shape[0]  # two panels side by side
+    assert (img[..., :3].mean(axis=2) < 0.9).mean() > 0.05  # not a blank picture
 
 
 def test_help_and_version(capsys):
@@ -128,7 +142,9 @@ def test_error_mapping_to_exit_codes():
     @handle_errors
     def boom(kind: str):
         if kind == "mesh":
-            raise MeshError("3 degenerate triangle(s): triangle ids 4, 5, 6", problem="degenerate_triangles")
+            raise MeshError(
+                "3 degenerate triangle(s): triangle ids 4, 5, 6", problem="degenerate_triangles"
+            )
         if kind == "data":
             raise DataNotFoundError("shared data not found: /nowhere")
         if kind == "file":
@@ -143,7 +159,9 @@ def test_error_mapping_to_exit_codes():
     res = runner.invoke(app, ["file"])
     assert res.exit_code == EXIT_MISSING and "scan.bnt" in res.output
     res = runner.invoke(app, ["other"])
-    assert res.exit_code == EXIT_ERROR and "internal error" in res.output and "--debug" in res.output
+    assert (
+        res.exit_code == EXIT_ERROR and "internal error" in res.output and "--debug" in res.output
+    )
     assert "Traceback" not in res.output
 
 
@@ -182,34 +200,74 @@ def test_fit_command_refuses_an_unknown_restart_trigger(tmp_path):
     assert tuple(w.value for w in fit.RestartWhen) == RESTART_WHEN
     app = typer.Typer()
     fit.register(app)
-    res = CliRunner().invoke(app, ["--neutral", str(tmp_path / "N.bnt"), "--scan", str(tmp_path / "S.bnt"),
-                                   "--restart-when", "always", "--out", str(tmp_path / "out")])
+    res = CliRunner().invoke(
+        app,
+        [
+            "--neutral",
+            str(tmp_path / "N.bnt"),
+            "--scan",
+            str(tmp_path / "S.bnt"),
+            "--restart-when",
+            "always",
+            "--out",
+            str(tmp_path / "out"),
+        ],
+    )
     assert res.exit_code == EXIT_USAGE, res.output
-    assert "--restart-when" in res.output and "unconverged" in res.output and "saturated" in res.output
+    assert (
+        "--restart-when" in res.output and "unconverged" in res.output and "saturated" in res.output
+    )
     assert not (tmp_path / "out").exists()
 
 
 def test_compile_cache_is_written_where_asked_and_not_when_off(tmp_path):
     """The CLI keeps XLA's compiled programs in ``--compile-cache`` / ``JAXFACE_COMPILE_CACHE``
     (default under ``$XDG_CACHE_HOME``), and writes nothing with ``off``."""
-    env = dict(os.environ, MPLBACKEND="Agg", JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
-               XDG_CACHE_HOME=str(tmp_path / "xdg"))
+    env = dict(
+        os.environ,
+        MPLBACKEND="Agg",
+        JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
+        XDG_CACHE_HOME=str(tmp_path / "xdg"),
+    )
     cache = tmp_path / "cache"
     args = [sys.executable, "-m", "jaxface.cli", "synth", "--au", "AU12=0.5", "-q"]
-    on = subprocess.run(args + ["--out", str(tmp_path / "a")], capture_output=True, text=True,
-                        env=dict(env, JAXFACE_COMPILE_CACHE=str(cache)), timeout=600)
+    on = subprocess.run(
+        args + ["--out", str(tmp_path / "a")],
+        capture_output=True,
+        text=True,
+        env=dict(env, JAXFACE_COMPILE_CACHE=str(cache)),
+        timeout=600,
+    )
     assert on.returncode == 0, on.stderr[-2000:]
     assert any(p.name.endswith("-cache") for p in cache.iterdir())
     assert not (tmp_path / "xdg" / "jaxface").exists()  # (matplotlib may cache there)
     noenv = {k: v for k, v in env.items() if k != "JAXFACE_COMPILE_CACHE"}
-    default = subprocess.run(args + ["--out", str(tmp_path / "c")], capture_output=True, text=True,
-                             env=noenv, timeout=600)
+    default = subprocess.run(
+        args + ["--out", str(tmp_path / "c")],
+        capture_output=True,
+        text=True,
+        env=noenv,
+        timeout=600,
+    )
     assert default.returncode == 0, default.stderr[-2000:]
     assert any(p.name.endswith("-cache") for p in (tmp_path / "xdg" / "jaxface" / "xla").iterdir())
     shutil.rmtree(tmp_path / "xdg" / "jaxface")
-    off = subprocess.run([args[0], "-m", "jaxface.cli", "--compile-cache", "off", *args[3:], "--out",
-                          str(tmp_path / "b")], capture_output=True, text=True,
-                         env=noenv, timeout=600)
+    off = subprocess.run(
+        [
+            args[0],
+            "-m",
+            "jaxface.cli",
+            "--compile-cache",
+            "off",
+            *args[3:],
+            "--out",
+            str(tmp_path / "b"),
+        ],
+        capture_output=True,
+        text=True,
+        env=noenv,
+        timeout=600,
+    )
     assert off.returncode == 0, off.stderr[-2000:]
     assert (tmp_path / "b").is_dir() and not (tmp_path / "xdg" / "jaxface").exists()
 

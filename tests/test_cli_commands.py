@@ -24,8 +24,14 @@ from jaxface.cli import EXIT_ERROR, EXIT_MISSING, EXIT_USAGE
 
 def run_cli(*args, cwd=None, timeout=300):
     env = dict(os.environ, MPLBACKEND="Agg", COLUMNS="200")
-    return subprocess.run([sys.executable, "-m", "jaxface.cli", *map(str, args)], capture_output=True,
-                          text=True, cwd=cwd, env=env, timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-m", "jaxface.cli", *map(str, args)],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        env=env,
+        timeout=timeout,
+    )
 
 
 def run_main(capsys, *args):
@@ -75,13 +81,16 @@ def test_scanner_matches_ray_cast(head):
     ref = head.mesh.ray_cast(o, np.array([0.0, 0.0, -1.0]))
     assert ref.hit.sum() > 500
     np.testing.assert_array_equal(ref.hit, hits.valid.ravel()[idx])
-    np.testing.assert_allclose(hits.xyz.reshape(-1, 3)[idx][ref.hit, 2], top - ref.first_distance[ref.hit],
-                               atol=1e-9)
+    np.testing.assert_allclose(
+        hits.xyz.reshape(-1, 3)[idx][ref.hit, 2], top - ref.first_distance[ref.hit], atol=1e-9
+    )
     # the scan's points are the valid pixels in row-major order, rows bottom to top
     np.testing.assert_allclose(scan.points, hits.xyz[hits.valid])
     assert np.all(np.diff(hits.ys) > 0)
     # the same surface points re-evaluated on the undeformed vertices
-    np.testing.assert_allclose(hits.positions(head.mesh.vertices)[hits.valid], scan.points, atol=1e-9)
+    np.testing.assert_allclose(
+        hits.positions(head.mesh.vertices)[hits.valid], scan.points, atol=1e-9
+    )
     moved = head.mesh.vertices + np.array([1.0, -2.0, 3.0])
     np.testing.assert_allclose(hits.sample(moved), scan.points + [1.0, -2.0, 3.0], atol=1e-9)
 
@@ -109,7 +118,11 @@ def test_scanner_plane_layers_angle_and_errors():
     with pytest.raises(ScanFormatError, match="no ray"):
         scan_mesh((V, T), 1.0, max_angle_deg=12.0)
     noisy = scan_mesh((V, T), 1.0, noise_mm=0.1, seed=1)
-    assert 0.07 < np.std(noisy.points[:, 2] - (0.2 * noisy.points[:, 0] - 0.1 * noisy.points[:, 1] + 35)) < 0.13
+    assert (
+        0.07
+        < np.std(noisy.points[:, 2] - (0.2 * noisy.points[:, 0] - 0.1 * noisy.points[:, 1] + 35))
+        < 0.13
+    )
     with pytest.raises(ScanFormatError, match="resolution"):
         scan_mesh((V, T), 0.0)
     with pytest.raises(ScanFormatError, match="too large"):
@@ -155,8 +168,9 @@ def test_convert_round_trip_synthetic_head(head, head_files, tmp_path):
     assert set(k1) == set(k2)
     assert max(abs(k1[k] - k2[k]) for k in k1) < 1e-4
     assert s1.n_points - s2.n_points < 0.05 * s1.n_points  # only unmeshed pixels are lost
-    np.testing.assert_allclose(read_lm3(c.with_suffix(".lm3")).positions, head.landmarks.positions,
-                               atol=1e-5)
+    np.testing.assert_allclose(
+        read_lm3(c.with_suffix(".lm3")).positions, head.landmarks.positions, atol=1e-5
+    )
 
 
 def test_convert_round_trip_shared_bnt(shared, tmp_path):
@@ -180,8 +194,9 @@ def test_convert_round_trip_shared_bnt(shared, tmp_path):
     assert set(k0) == set(k1) and len(k0) > 27000
     assert max(abs(k0[k] - k1[k]) for k in k0) < 1e-4
     np.testing.assert_allclose(back.xyz_grid()[back.valid][:, :2], np.round(back.points[:, :2]))
-    np.testing.assert_allclose(read_lm3(bnt.with_suffix(".lm3")).positions, scan.landmarks.positions,
-                               atol=1e-6)
+    np.testing.assert_allclose(
+        read_lm3(bnt.with_suffix(".lm3")).positions, scan.landmarks.positions, atol=1e-6
+    )
 
 
 def test_convert_units(head, head_files, tmp_path, capsys):
@@ -195,16 +210,22 @@ def test_convert_units(head, head_files, tmp_path, capsys):
     raw = load_mesh(obj, units="mm", check_size=False)  # the numbers in the file
     np.testing.assert_allclose(raw.vertices, head.mesh.vertices / 10.0, atol=1e-6)
     np.testing.assert_array_equal(raw.triangles, head.mesh.triangles)
-    np.testing.assert_allclose(read_lm3(obj.with_suffix(".lm3")).positions, head.landmarks.positions / 10.0,
-                               atol=1e-6)
+    np.testing.assert_allclose(
+        read_lm3(obj.with_suffix(".lm3")).positions, head.landmarks.positions / 10.0, atol=1e-6
+    )
     code, err = run_main(capsys, "convert", obj, ply, "--in-units", "cm", "--out-units", "m")
     assert code == 0, err
-    np.testing.assert_allclose(load_mesh(ply, units="mm", check_size=False).vertices,
-                               head.mesh.vertices / 1000.0, atol=1e-7)
+    np.testing.assert_allclose(
+        load_mesh(ply, units="mm", check_size=False).vertices,
+        head.mesh.vertices / 1000.0,
+        atol=1e-7,
+    )
     np.testing.assert_allclose(load_mesh(ply, units="m").vertices, head.mesh.vertices, atol=1e-4)
     # a .bnt scan of a mesh given in metres, written in cm: 2 mm grid -> 0.2 apart in the file
     bnt = tmp_path / "head_cm.bnt"
-    code, err = run_main(capsys, "convert", ply, bnt, "--in-units", "m", "--out-units", "cm", "-r", 2)
+    code, err = run_main(
+        capsys, "convert", ply, bnt, "--in-units", "m", "--out-units", "cm", "-r", 2
+    )
     assert code == 0, err
     s = read_bnt(bnt, units="cm")
     np.testing.assert_allclose(np.diff(np.unique(s.points[:, 0]))[:5], 2.0, atol=1e-9)
@@ -223,11 +244,17 @@ def test_convert_bad_inputs(head_files, tmp_path, capsys):
     code, err = run_main(capsys, "convert", head_files / "head.ply", tmp_path / "x.stl")
     assert code == EXIT_USAGE and "'.stl'" in err and ".bnt, .ply or .obj" in err
     # a millimetre mesh declared in metres: the size check explains which unit fits
-    code, err = run_main(capsys, "convert", head_files / "head.ply", tmp_path / "x.obj", "--in-units", "m")
+    code, err = run_main(
+        capsys, "convert", head_files / "head.ply", tmp_path / "x.obj", "--in-units", "m"
+    )
     assert code == EXIT_USAGE and "units='mm'" in err and "--in-units" in err
-    code, err = run_main(capsys, "convert", head_files / "head.ply", tmp_path / "x.obj", "--in-units", "inch")
+    code, err = run_main(
+        capsys, "convert", head_files / "head.ply", tmp_path / "x.obj", "--in-units", "inch"
+    )
     assert code == EXIT_USAGE and "--in-units" in err
-    code, err = run_main(capsys, "convert", head_files / "head.ply", tmp_path / "y.bnt", "--bounds=1,2,3")
+    code, err = run_main(
+        capsys, "convert", head_files / "head.ply", tmp_path / "y.bnt", "--bounds=1,2,3"
+    )
     assert code == EXIT_USAGE and "XMIN,YMIN,XMAX,YMAX" in err
     assert not list(tmp_path.glob("x.*")) and not (tmp_path / "y.bnt").exists()
 
@@ -254,7 +281,10 @@ def clone_case(head, tmp_path_factory):
     c1 = 0.5 * (lm["Left nose peak"] + lm["Outer left eye corner"]) + [8.0, 0.0, 0.0]
     w1 = np.exp(-np.sum((V - c1) ** 2, 1) / 60.0)
     w2 = np.exp(-np.sum((V - lm["Inner right eyebrow"]) ** 2, 1) / 200.0)
-    deltas = {"brow_r": np.c_[0 * w2, 2.5 * w2, 0 * w2], "cheek_l": np.c_[0 * w1, 2.0 * w1, 1.5 * w1]}
+    deltas = {
+        "brow_r": np.c_[0 * w2, 2.5 * w2, 0 * w2],
+        "cheek_l": np.c_[0 * w1, 2.0 * w1, 1.5 * w1],
+    }
     for name, dl in deltas.items():
         save_mesh(d / "targets" / f"{name}.ply", V + dl, src.triangles)
     return d, A, deltas
@@ -265,22 +295,32 @@ def test_clone_affine_target_is_exact(clone_case):
 
     d, A, deltas = clone_case
     out = d / "out"
-    p = run_cli("clone", "--source-neutral", d / "src.ply", "--source-targets", d / "targets",
-                "--target", d / "tgt.ply", "--out", out)
+    p = run_cli(
+        "clone",
+        "--source-neutral",
+        d / "src.ply",
+        "--source-targets",
+        d / "targets",
+        "--target",
+        d / "tgt.ply",
+        "--out",
+        out,
+    )
     assert p.returncode == 0, p.stderr
     assert "cloning targets" in p.stderr and "2/2" in p.stderr
     T = load_mesh(d / "tgt.ply", validate=False).vertices
     for name, dl in deltas.items():
         got = load_mesh(out / f"{name}.ply", validate=False).vertices - T
-        moving = np.linalg.norm(dl, axis=1) > 0.01        # the default --move-tol
+        moving = np.linalg.norm(dl, axis=1) > 0.01  # the default --move-tol
         assert moving.sum() > 100
         np.testing.assert_allclose(got[moving], dl[moving] @ A.T, atol=1e-4)  # float32 PLY
         np.testing.assert_allclose(got[~moving], 0.0, atol=1e-4)
     rep = json.loads((out / "clone.json").read_text())
     assert [t["name"] for t in rep["targets"]] == ["brow_r", "cheek_l"]
     assert rep["converged"] and rep["pairs"]["landmark"] == 24 and rep["pairs"]["refined"] == 0
-    assert rep["targets"][0]["max_mm"] == pytest.approx(np.linalg.norm(deltas["brow_r"] @ A.T, axis=1).max(),
-                                                        abs=1e-3)
+    assert rep["targets"][0]["max_mm"] == pytest.approx(
+        np.linalg.norm(deltas["brow_r"] @ A.T, axis=1).max(), abs=1e-3
+    )
 
 
 def test_clone_bad_inputs(clone_case, tmp_path, capsys):
@@ -291,19 +331,55 @@ def test_clone_bad_inputs(clone_case, tmp_path, capsys):
     tgt = tmp_path / "bare.ply"
     tgt.write_bytes((d / "tgt.ply").read_bytes())
     p = run_cli("clone", "-s", d / "src.ply", "-t", d / "targets", "-T", tgt, "-o", tmp_path / "o")
-    assert p.returncode == EXIT_USAGE and "--target-landmarks" in p.stderr and "bare.lm3" in p.stderr
+    assert (
+        p.returncode == EXIT_USAGE and "--target-landmarks" in p.stderr and "bare.lm3" in p.stderr
+    )
     # a morph target with another vertex count
     bad = tmp_path / "bad_targets"
     bad.mkdir()
     save_mesh(bad / "small.ply", np.array([[0, 0, 0], [100.0, 0, 0], [0, 100.0, 0]]), [[0, 1, 2]])
-    code, err = run_main(capsys, "clone", "-s", d / "src.ply", "-t", bad, "-T", d / "tgt.ply", "-o",
-                         tmp_path / "o", "--landmarks", "Nose tip,Left mouth corner,Right mouth corner")
+    code, err = run_main(
+        capsys,
+        "clone",
+        "-s",
+        d / "src.ply",
+        "-t",
+        bad,
+        "-T",
+        d / "tgt.ply",
+        "-o",
+        tmp_path / "o",
+        "--landmarks",
+        "Nose tip,Left mouth corner,Right mouth corner",
+    )
     assert code == EXIT_USAGE and "small.ply has 3 vertices" in err
-    code, err = run_main(capsys, "clone", "-s", d / "src.ply", "-t", d / "targets", "-T", d / "tgt.ply",
-                         "-o", tmp_path / "o", "--landmarks", "Nose tip,Left pupil")
+    code, err = run_main(
+        capsys,
+        "clone",
+        "-s",
+        d / "src.ply",
+        "-t",
+        d / "targets",
+        "-T",
+        d / "tgt.ply",
+        "-o",
+        tmp_path / "o",
+        "--landmarks",
+        "Nose tip,Left pupil",
+    )
     assert code == EXIT_USAGE and "Left pupil" in err
-    code, err = run_main(capsys, "clone", "-s", d / "src.ply", "-t", tmp_path / "nothing", "-T",
-                         d / "tgt.ply", "-o", tmp_path / "o")
+    code, err = run_main(
+        capsys,
+        "clone",
+        "-s",
+        d / "src.ply",
+        "-t",
+        tmp_path / "nothing",
+        "-T",
+        d / "tgt.ply",
+        "-o",
+        tmp_path / "o",
+    )
     assert code == EXIT_MISSING and "nothing" in err
     assert not (tmp_path / "o").exists()
 
@@ -312,7 +388,8 @@ def test_clone_bad_inputs(clone_case, tmp_path, capsys):
 def _bench_repo(root):
     b = root / "benchmarks"
     b.mkdir(parents=True)
-    (b / "bench_good.py").write_text(textwrap.dedent("""
+    (b / "bench_good.py").write_text(
+        textwrap.dedent("""
         import json, sys
         from pathlib import Path
         quick = "--quick" in sys.argv
@@ -321,8 +398,11 @@ def _bench_repo(root):
         out = Path(__file__).parent / "results"
         out.mkdir(exist_ok=True)
         (out / "bench_good.json").write_text(json.dumps({"quick": quick, "sum": sum(range(10 if quick else 100))}))
-    """))
-    (b / "bench_broken.py").write_text("import sys\nprint('starting')\nraise SystemExit('no data here')\n")
+    """)
+    )
+    (b / "bench_broken.py").write_text(
+        "import sys\nprint('starting')\nraise SystemExit('no data here')\n"
+    )
     (b / "helper.py").write_text("raise RuntimeError('not a benchmark')\n")
     return b
 
@@ -334,7 +414,7 @@ def test_bench_runs_scripts_and_summarises(tmp_path):
     # found from a sub-folder of the checkout; one script fails -> exit 1
     p = run_cli("bench", "--quick", "--json", tmp_path / "summary.json", cwd=sub)
     assert p.returncode == EXIT_ERROR, p.stderr
-    assert "| sum  | 45 |" in p.stderr                       # the script's own table
+    assert "| sum  | 45 |" in p.stderr  # the script's own table
     assert "no data here" in p.stderr and "broken" in p.stderr
     summary = json.loads((tmp_path / "summary.json").read_text())
     status = {r["name"]: r["status"] for r in summary["runs"]}
@@ -343,7 +423,10 @@ def test_bench_runs_scripts_and_summarises(tmp_path):
     # --only, without --quick
     p = run_cli("bench", "--only", "good", "--dir", b, "--no-output", cwd=tmp_path)
     assert p.returncode == 0, p.stderr
-    assert json.loads((b / "results" / "bench_good.json").read_text()) == {"quick": False, "sum": 4950}
+    assert json.loads((b / "results" / "bench_good.json").read_text()) == {
+        "quick": False,
+        "sum": 4950,
+    }
     assert "| sum" not in p.stderr and "bench_good.json" in p.stderr
 
 
@@ -353,8 +436,11 @@ def test_help_lists_the_commands_with_examples(capsys):
     assert main(["--help"]) == 0
     out = capsys.readouterr().out
     assert all(c in out for c in ("convert", "clone", "bench"))
-    for cmd, example in (("convert", "jaxface convert head.ply head.bnt"), ("clone", "jaxface clone -s"),
-                         ("bench", "jaxface bench --quick")):
+    for cmd, example in (
+        ("convert", "jaxface convert head.ply head.bnt"),
+        ("clone", "jaxface clone -s"),
+        ("bench", "jaxface bench --quick"),
+    ):
         assert main([cmd, "--help"]) == 0
         assert example in capsys.readouterr().out
 

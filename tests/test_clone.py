@@ -27,7 +27,9 @@ def grid_surface(n=25, size=100.0, hole=None, slit=None, bump=True):
     V = np.stack([X.ravel(), Y.ravel(), Z.ravel()], 1)
     idx = np.arange(n * n).reshape(n, n)
     a, b, c, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, 1:], idx[1:, :-1]
-    F = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)])
+    F = np.concatenate(
+        [np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)]
+    )
     cen = V[F].mean(1)
     keep = np.ones(len(F), bool)
     if hole is not None:
@@ -50,7 +52,9 @@ def test_cast_segments_matches_mesh_ray_cast():
     o = np.c_[rng.uniform(-45, 45, (60, 2)), rng.uniform(-5, 30, 60)]
     d = rng.normal(size=(60, 3)) + [0, 0, 2.0]
     L = 12.0
-    hit, tri, bary, t = clone.cast_segments(o, d, L, mesh.vertices, mesh.triangles, normal_dot_min=None)
+    hit, tri, bary, t = clone.cast_segments(
+        o, d, L, mesh.vertices, mesh.triangles, normal_dot_min=None
+    )
     dn = d / np.linalg.norm(d, axis=1, keepdims=True)
     fwd = mesh.ray_cast(o, dn, max_distance=L).first_distance
     bwd = mesh.ray_cast(o, -dn, max_distance=L).first_distance
@@ -63,8 +67,9 @@ def test_cast_segments_matches_mesh_ray_cast():
     np.testing.assert_allclose(p, o[hit] + t[hit, None] * dn[hit], atol=1e-9)
     assert np.all(bary[hit] >= 0) and np.allclose(bary[hit].sum(1), 1)
     # one-sided rays only go forward
-    h1, _, _, t1 = clone.cast_segments(o, d, L, mesh.vertices, mesh.triangles, two_sided=False,
-                                       normal_dot_min=None)
+    h1, _, _, t1 = clone.cast_segments(
+        o, d, L, mesh.vertices, mesh.triangles, two_sided=False, normal_dot_min=None
+    )
     np.testing.assert_array_equal(h1, np.isfinite(fwd))
     np.testing.assert_allclose(t1[h1], fwd[h1], atol=1e-9)
 
@@ -81,7 +86,9 @@ def test_cast_through_a_vertex_keeps_a_triangle_that_faces_the_ray():
     d = np.array([[0.0, 0.0, 1.0]])
     F[inc.min()] = F[inc.min()][::-1]  # the lowest-numbered incident triangle faces -z
     folded = TriMesh(V, F, validate=False)
-    all_hits = folded.ray_cast(V[v] - d[0], d[0], all_hits=True, max_distance=2.0, merge_coincident=False)
+    all_hits = folded.ray_cast(
+        V[v] - d[0], d[0], all_hits=True, max_distance=2.0, merge_coincident=False
+    )
     assert all_hits.distances.size == 6
     merged = folded.ray_cast(V[v] - d[0], d[0], all_hits=True, max_distance=2.0)
     assert merged.distances.size == 1
@@ -104,7 +111,10 @@ def test_eye_contour_from_boundary_loop():
     assert c.kind == "loop"
     for arc in (c.upper, c.lower):
         assert _connected(mesh, arc)
-        assert np.linalg.norm(V[arc[0]] - [-24, 0, 0]) < 4 and np.linalg.norm(V[arc[-1]] - [24, 0, 0]) < 4
+        assert (
+            np.linalg.norm(V[arc[0]] - [-24, 0, 0]) < 4
+            and np.linalg.norm(V[arc[-1]] - [24, 0, 0]) < 4
+        )
     assert V[c.upper[1:-1], 1].mean() > 3 and V[c.lower[1:-1], 1].mean() < -3
     # the arcs run along the hole: every interior vertex is a boundary vertex
     bnd = set(np.concatenate(mesh.boundary_loops).tolist())
@@ -150,7 +160,11 @@ def test_arc_length_matching_and_polyline_projection():
     dst = np.array([[0, 0, 0], [0, 10, 0], [20, 10, 0.0]])  # length 30
     out = contours.resample_polyline(dst, t)
     s = t * 30
-    ref = np.where(s[:, None] <= 10, np.c_[np.zeros(7), s, np.zeros(7)], np.c_[s - 10, np.full(7, 10), np.zeros(7)])
+    ref = np.where(
+        s[:, None] <= 10,
+        np.c_[np.zeros(7), s, np.zeros(7)],
+        np.c_[s - 10, np.full(7, 10), np.zeros(7)],
+    )
     np.testing.assert_allclose(out, ref, atol=1e-12)
     q = contours.closest_on_polyline(np.array([[5, 3, 1.0], [-2, 4, 0], [30, 30, 0]]), dst)
     np.testing.assert_allclose(q, [[0, 3, 0], [0, 4, 0], [20, 10, 0]], atol=1e-12)
@@ -171,10 +185,20 @@ def _affine_setup():
     lsrc = Landmarks(names, src.vertices[ids])
     ltgt = Landmarks(names, tgt.vertices[ids])
     V = src.vertices
-    deltas = np.stack([
-        np.c_[np.zeros(len(V)), np.zeros(len(V)), 3 * np.exp(-((V[:, 0] - 20) ** 2 + V[:, 1] ** 2) / 200)],
-        np.c_[2 * np.exp(-(V[:, 0] ** 2 + (V[:, 1] + 25) ** 2) / 300), np.zeros(len(V)), np.zeros(len(V))],
-    ])
+    deltas = np.stack(
+        [
+            np.c_[
+                np.zeros(len(V)),
+                np.zeros(len(V)),
+                3 * np.exp(-((V[:, 0] - 20) ** 2 + V[:, 1] ** 2) / 200),
+            ],
+            np.c_[
+                2 * np.exp(-(V[:, 0] ** 2 + (V[:, 1] + 25) ** 2) / 300),
+                np.zeros(len(V)),
+                np.zeros(len(V)),
+            ],
+        ]
+    )
     return src, tgt, lsrc, ltgt, deltas, A
 
 
@@ -183,19 +207,39 @@ def test_affine_clone_is_exact(transfer):
     """Target = affine image of the source: G is that affine map, the refinement has nothing
     to add, and every cloned displacement is A times the source one."""
     src, tgt, lsrc, ltgt, deltas, A = _affine_setup()
-    r = clone.clone_motion(src, tgt, lsrc, ltgt, source_deltas=deltas, ens0=30.0,
-                           use_contours=False, transfer=transfer, names=["bump", "shift"],
-                           move_tol=0.0)
+    r = clone.clone_motion(
+        src,
+        tgt,
+        lsrc,
+        ltgt,
+        source_deltas=deltas,
+        ens0=30.0,
+        use_contours=False,
+        transfer=transfer,
+        names=["bump", "shift"],
+        move_tol=0.0,
+    )
     assert r.names == ("bump", "shift")
     assert r.fit.converged and r.fit.n_refined_pairs == 0
     np.testing.assert_allclose(r.fit.deformed, tgt.vertices, atol=1e-8)
     np.testing.assert_allclose(r.deltas, deltas @ A.T, atol=1e-6)
     # positions form and "thesis" (snapping) mode agree when the target lies on the source
-    r2 = clone.clone_motion(src, tgt, lsrc, ltgt, source_targets=src.vertices + deltas, ens0=30.0,
-                            use_contours=False, mode="thesis", transfer=transfer, move_tol=0.0)
+    r2 = clone.clone_motion(
+        src,
+        tgt,
+        lsrc,
+        ltgt,
+        source_targets=src.vertices + deltas,
+        ens0=30.0,
+        use_contours=False,
+        mode="thesis",
+        transfer=transfer,
+        move_tol=0.0,
+    )
     # with the default move_tol (0.01 mm) the tiny tails are not cloned, nothing else changes
-    r3 = clone.clone_motion(src, tgt, lsrc, ltgt, source_deltas=deltas, ens0=30.0,
-                            use_contours=False, transfer=transfer)
+    r3 = clone.clone_motion(
+        src, tgt, lsrc, ltgt, source_deltas=deltas, ens0=30.0, use_contours=False, transfer=transfer
+    )
     small = np.linalg.norm(deltas, axis=2) <= 0.01
     assert np.abs(r3.deltas[~small[:, :]].reshape(-1, 3) - (deltas @ A.T)[~small]).max() < 0.02
     assert np.abs(r3.deltas).max() > 1.0
@@ -211,7 +255,10 @@ def test_refinement_pulls_source_onto_target():
     names = list(lsrc.names)
     far = [i for i, p in enumerate(lsrc.positions) if np.hypot(p[0] + 15, p[1] - 10) > 30]
     lsrc = Landmarks([names[i] for i in far], lsrc.positions[far])
-    ltgt = Landmarks(lsrc.names, V[[int(np.argmin(np.linalg.norm(src.vertices - p, axis=1))) for p in lsrc.positions]])
+    ltgt = Landmarks(
+        lsrc.names,
+        V[[int(np.argmin(np.linalg.norm(src.vertices - p, axis=1))) for p in lsrc.positions]],
+    )
     fit = clone.fit_source_to_target(src, tgt, lsrc, ltgt, ens0=30.0, use_contours=False)
     gap0 = fit.history[0]["max_error"]
     _, d = tgt.closest_points(fit.deformed)
@@ -227,7 +274,9 @@ def test_clone_input_errors():
     with pytest.raises(MeshError, match=r"\(T, 289, 3\)"):
         clone.clone_motion(src, tgt, lsrc, ltgt, source_deltas=deltas[:, :10], ens0=30.0)
     with pytest.raises(LandmarkError, match="at least 4 landmarks"):
-        clone.clone_motion(src, tgt, lsrc.subset(lsrc.names[:3]), ltgt, source_deltas=deltas, ens0=30.0)
+        clone.clone_motion(
+            src, tgt, lsrc.subset(lsrc.names[:3]), ltgt, source_deltas=deltas, ens0=30.0
+        )
     with pytest.raises(LandmarkError, match="ENS0"):
         clone.clone_motion(src, tgt, lsrc, ltgt, source_deltas=deltas)
     bad = deltas.copy()
@@ -254,9 +303,15 @@ def ict(request):
     nv = 9409
     F = tri[(grp == 0) & (tri < nv).all(1)].astype(np.int64)
     lm = truth["landmark_vertex_ids_ict"]
-    return dict(V=d["neutral"][:nv].astype(float), F=F, E=d["expression_deltas"][:, :nv].astype(float),
-                names=list(d["expression_names"]), ID=d["identity_deltas"][:, :nv].astype(float),
-                lm_names=list(lm), lm_ids=np.array(list(lm.values())))
+    return dict(
+        V=d["neutral"][:nv].astype(float),
+        F=F,
+        E=d["expression_deltas"][:, :nv].astype(float),
+        names=list(d["expression_names"]),
+        ID=d["identity_deltas"][:, :nv].astype(float),
+        lm_names=list(lm),
+        lm_ids=np.array(list(lm.values())),
+    )
 
 
 def resample_face(V, F, spacing, E, jaw):
@@ -269,8 +324,9 @@ def resample_face(V, F, spacing, E, jaw):
     ys = np.arange(75, -75 - 1e-9, -spacing)
     X, Y = np.meshgrid(xs, ys)
     o = np.stack([X.ravel(), Y.ravel(), np.full(X.size, 400.0)], 1)
-    hit, tri, bary, _ = clone.cast_segments(o, np.tile([0, 0, -1.0], (len(o), 1)), 600.0, V, F,
-                                            two_sided=False, normal_dot_min=None)
+    hit, tri, bary, _ = clone.cast_segments(
+        o, np.tile([0, 0, -1.0], (len(o), 1)), 600.0, V, F, two_sided=False, normal_dot_min=None
+    )
     xyz = np.zeros((len(o), 3))
     xyz[hit] = np.einsum("kj,kjd->kd", bary[hit], V[F[tri[hit]]])
     T = grid_triangles(xyz.reshape(*X.shape, 3), hit.reshape(X.shape), spacing=spacing)
@@ -290,8 +346,9 @@ def resample_face(V, F, spacing, E, jaw):
 
     e = mesh.edges
     n = mesh.n_vertices
-    _, lab = connected_components(coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)),
-                                  directed=False)
+    _, lab = connected_components(
+        coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)), directed=False
+    )
     big = np.argmax(np.bincount(lab))
     fm = (lab[mesh.triangles] == big).all(1)
     sub, old = mesh.submesh(fm)
@@ -331,10 +388,22 @@ def test_cross_identity_clone(ict):
     T = tgt.vertices
     mag = np.linalg.norm(r.deltas, axis=2)
     chin = np.linalg.norm(T - VI[ict["lm_ids"][ict["lm_names"].index("Chin middle")]], axis=1) < 10
-    brow_r = np.linalg.norm(T - VI[ict["lm_ids"][ict["lm_names"].index("Inner right eyebrow")]], axis=1) < 10
-    brow_l = np.linalg.norm(T - VI[ict["lm_ids"][ict["lm_names"].index("Inner left eyebrow")]], axis=1) < 10
-    mouth_l = np.linalg.norm(T - VI[ict["lm_ids"][ict["lm_names"].index("Left mouth corner")]], axis=1) < 8
-    mouth_r = np.linalg.norm(T - VI[ict["lm_ids"][ict["lm_names"].index("Right mouth corner")]], axis=1) < 8
+    brow_r = (
+        np.linalg.norm(T - VI[ict["lm_ids"][ict["lm_names"].index("Inner right eyebrow")]], axis=1)
+        < 10
+    )
+    brow_l = (
+        np.linalg.norm(T - VI[ict["lm_ids"][ict["lm_names"].index("Inner left eyebrow")]], axis=1)
+        < 10
+    )
+    mouth_l = (
+        np.linalg.norm(T - VI[ict["lm_ids"][ict["lm_names"].index("Left mouth corner")]], axis=1)
+        < 8
+    )
+    mouth_r = (
+        np.linalg.norm(T - VI[ict["lm_ids"][ict["lm_names"].index("Right mouth corner")]], axis=1)
+        < 8
+    )
     forehead = T[:, 1] > 70
     assert mag[0, chin].mean() > 10 and mag[0, forehead].max() < 0.5  # jawOpen
     assert r.deltas[0, chin, 1].mean() < -10  # ... opens downwards
@@ -345,5 +414,6 @@ def test_cross_identity_clone(ict):
     for j in range(len(sel)):
         big = np.linalg.norm(ET[j], axis=1) > 1.0
         cos = np.einsum("ij,ij->i", r.deltas[j, big], ET[j, big]) / (
-            np.linalg.norm(r.deltas[j, big], axis=1) * np.linalg.norm(ET[j, big], axis=1) + 1e-12)
+            np.linalg.norm(r.deltas[j, big], axis=1) * np.linalg.norm(ET[j, big], axis=1) + 1e-12
+        )
         assert np.median(cos) > 0.9

@@ -10,7 +10,7 @@ nearest-vertex snapping are equivariant under scaling about the origin).
 from __future__ import annotations
 
 import json
-from functools import lru_cache
+from functools import cache
 
 import numpy as np
 import pytest
@@ -33,7 +33,7 @@ DATA = ("data", "bosphorus_style")
 FACE_VERTS = 9409  # ICT face region: vertices 0..9408
 
 
-@lru_cache(maxsize=None)
+@cache
 def _load(path: str):
     from jaxface.io import load_scan
 
@@ -59,6 +59,7 @@ def _rigid(entry):
 # ------------------------------------------------------------------------------------------
 # layouts (pure)
 # ------------------------------------------------------------------------------------------
+
 
 def test_layouts_well_formed():
     assert SUPPORTED_AUS == (1, 2, 4, 12, 14, 15, 17, 20)
@@ -93,6 +94,7 @@ def test_parse_au():
 # control points on a real face
 # ------------------------------------------------------------------------------------------
 
+
 @pytest.mark.data
 def test_control_points_placed_anatomically(shared):
     sn = _scan(shared, "bs900_N_N_0.truth.ply")
@@ -119,7 +121,9 @@ def test_control_points_placed_anatomically(shared):
                 assert abs(p[0]) < 3.0
     # AU12's zygomatic line runs from the mouth corner up and out toward the cheekbone
     cps, idx = place_control_points(sn, 12)
-    zyg = [sn.points[i] for c, i in zip(cps, idx) if c.name.startswith("zygomaticus") and c.side == "L"]
+    zyg = [
+        sn.points[i] for c, i in zip(cps, idx) if c.name.startswith("zygomaticus") and c.side == "L"
+    ]
     zyg = np.array(zyg)
     assert np.all(np.diff(zyg[:, 0]) > 0) and np.all(np.diff(zyg[:, 1]) > 0)
 
@@ -127,6 +131,7 @@ def test_control_points_placed_anatomically(shared):
 # ------------------------------------------------------------------------------------------
 # self reproduction: bs900 neutral -> bs900 AU, on the truth meshes (same topology)
 # ------------------------------------------------------------------------------------------
+
 
 @pytest.mark.data
 @pytest.mark.parametrize("code,au,max_ratio", [("LFAU_12", 12, 0.5), ("UFAU_4", 4, 0.5)])
@@ -144,8 +149,10 @@ def test_self_reproduction(shared, code, au, max_ratio):
     tm = trimesh.Trimesh(se.points, se.triangles, process=False)
     _, ds, _ = trimesh.proximity.closest_point(tm, a.vertices[moved])
     _, d0, _ = trimesh.proximity.closest_point(tm, sn.points[moved])
-    print(f"\nself {code}: moved region {moved.sum()} vertices; per-vertex mean error {ours:.2f} mm "
-          f"(B0 {b0:.2f}); point-to-surface {ds.mean():.2f} mm (B0 {d0.mean():.2f})")
+    print(
+        f"\nself {code}: moved region {moved.sum()} vertices; per-vertex mean error {ours:.2f} mm "
+        f"(B0 {b0:.2f}); point-to-surface {ds.mean():.2f} mm (B0 {d0.mean():.2f})"
+    )
     assert ours < max_ratio * b0
     assert ds.mean() < 0.6 * d0.mean()
     # the other region is untouched, exactly
@@ -157,6 +164,7 @@ def test_self_reproduction(shared, code, au, max_ratio):
 # ------------------------------------------------------------------------------------------
 # cross subject: bs900 scans onto bs901
 # ------------------------------------------------------------------------------------------
+
 
 @pytest.mark.data
 def test_cross_subject_au12_moves_mouth_corners_only(shared):
@@ -174,8 +182,8 @@ def test_cross_subject_au12_moves_mouth_corners_only(shared):
         i = np.argmin(np.linalg.norm(V - tn.landmarks[name], axis=1))
         loc = d[i] @ frame.axes.T
         assert np.linalg.norm(d[i]) > 5.0
-        assert loc[1] > 3.0            # up
-        assert sign * loc[0] > 3.0     # outward (toward its own side)
+        assert loc[1] > 3.0  # up
+        assert sign * loc[0] > 3.0  # outward (toward its own side)
     # upper face and far parts (forehead, brows, eyes) do not move at all
     h = frame.local(V)[:, 1]
     assert np.all(d[h > frame.border_height()] == 0)
@@ -216,8 +224,10 @@ def test_cross_subject_accuracy_against_truth(shared):
     moved = true_d > 1.0
     moved[FACE_VERTS:] = False
     err = np.linalg.norm(a.vertices - ref, axis=1)
-    print(f"\ncross bs900->bs901 AU12: per-vertex mean error {err[moved].mean():.2f} mm "
-          f"(B0 {true_d[moved].mean():.2f}) over {moved.sum()} moved vertices")
+    print(
+        f"\ncross bs900->bs901 AU12: per-vertex mean error {err[moved].mean():.2f} mm "
+        f"(B0 {true_d[moved].mean():.2f}) over {moved.sum()} moved vertices"
+    )
     assert err[moved].mean() < 0.5 * true_d[moved].mean()
 
 
@@ -242,6 +252,7 @@ def test_asymmetric_au12_left(shared):
 # ------------------------------------------------------------------------------------------
 # magnitude, scaling, oracle m
 # ------------------------------------------------------------------------------------------
+
 
 @pytest.mark.data
 def test_magnitude_is_linear_and_fit_magnitude_recovers_it(shared):
@@ -283,19 +294,24 @@ def test_uniformly_scaled_target_gets_scaled_motion(shared, au, upper_scale):
 # bad input, missing landmarks
 # ------------------------------------------------------------------------------------------
 
+
 @pytest.mark.data
 def test_missing_landmarks(shared):
     sn, se = _scan(shared, "bs900_N_N_0.truth.ply"), _scan(shared, "bs900_LFAU_12_0.truth.ply")
     lm = sn.landmarks
     # an optional landmark missing on the target: reported, worked around
-    no_chin = Landmarks([n for n in lm.names if n != "Chin middle"],
-                        [p for n, p in zip(lm.names, lm.positions) if n != "Chin middle"])
+    no_chin = Landmarks(
+        [n for n in lm.names if n != "Chin middle"],
+        [p for n, p in zip(lm.names, lm.positions) if n != "Chin middle"],
+    )
     with pytest.warns(UserWarning, match="not AU4"):  # the source is an AU12 scan
         a = animate(sn, se, (sn.to_mesh(), no_chin), 4, align=False)
     assert any("Chin middle" in n for n in a.notes)
     # a landmark the frame needs: a clear error naming it
-    no_corner = Landmarks([n for n in lm.names if n != "Left mouth corner"],
-                          [p for n, p in zip(lm.names, lm.positions) if n != "Left mouth corner"])
+    no_corner = Landmarks(
+        [n for n in lm.names if n != "Left mouth corner"],
+        [p for n, p in zip(lm.names, lm.positions) if n != "Left mouth corner"],
+    )
     with pytest.raises(LandmarkError) as e:
         animate(sn, se, (sn.points, no_corner), 12, align=False)
     assert "Left mouth corner" in e.value.missing
@@ -308,6 +324,7 @@ def test_missing_landmarks(shared):
 # ------------------------------------------------------------------------------------------
 # thesis preprocessing step 1
 # ------------------------------------------------------------------------------------------
+
 
 @pytest.mark.data
 def test_resample_grid_150(shared):
@@ -336,7 +353,7 @@ def test_resample_grid_matches_griddata():
 
     rng = np.random.default_rng(3)
     xy = rng.uniform(-60, 60, size=(400, 2))
-    z = 80 - 0.01 * (xy ** 2).sum(1) + 3 * np.sin(xy[:, 0] / 9)
+    z = 80 - 0.01 * (xy**2).sum(1) + 3 * np.sin(xy[:, 0] / 9)
     pts = np.column_stack([xy, z])
     scan = Scan(points=pts)
     r = resample_grid(scan, 25)

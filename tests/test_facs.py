@@ -47,10 +47,17 @@ def test_controls_of_aus_and_jaw(names):
     assert not a.any()
 
 
-@pytest.mark.parametrize("emotion,aus", [
-    ("happiness", {"AU6", "AU12"}), ("sadness", {"AU1", "AU4", "AU15"}),
-    ("surprise", {"AU1", "AU2", "AU5", "AU26"}), ("fear", {"AU1", "AU2", "AU4", "AU5", "AU20", "AU26"}),
-    ("anger", {"AU4", "AU5", "AU7", "AU23"}), ("disgust", {"AU9", "AU15", "AU16"})])
+@pytest.mark.parametrize(
+    "emotion,aus",
+    [
+        ("happiness", {"AU6", "AU12"}),
+        ("sadness", {"AU1", "AU4", "AU15"}),
+        ("surprise", {"AU1", "AU2", "AU5", "AU26"}),
+        ("fear", {"AU1", "AU2", "AU4", "AU5", "AU20", "AU26"}),
+        ("anger", {"AU4", "AU5", "AU7", "AU23"}),
+        ("disgust", {"AU9", "AU15", "AU16"}),
+    ],
+)
 def test_emotion_presets(emotion, aus, names):
     assert set(facs.EMOTIONS[emotion]) == aus
     a, jaw, _ = facs.emotion_controls(emotion, names)
@@ -62,8 +69,17 @@ def test_readout_inverts_the_table(names):
     rng = np.random.default_rng(3)
     aus, A = facs.au_matrix(names)
     # a random sparse set of distinguishable AUs
-    pick = {"AU1L": 0.7, "AU1R": 0.6, "AU12L": 0.9, "AU15R": 0.4, "AU9L": 0.5, "AU9R": 0.5,
-            "AU17L": 0.3, "AU17R": 0.3, "AU20L": 0.8}
+    pick = {
+        "AU1L": 0.7,
+        "AU1R": 0.6,
+        "AU12L": 0.9,
+        "AU15R": 0.4,
+        "AU9L": 0.5,
+        "AU9R": 0.5,
+        "AU17L": 0.3,
+        "AU17R": 0.3,
+        "AU20L": 0.8,
+    }
     a = np.zeros(len(names))
     for au, v in pick.items():
         a += v * A[aus.index(au)]
@@ -71,8 +87,8 @@ def test_readout_inverts_the_table(names):
     out = facs.au_intensities(a, names)
     for au, v in pick.items():
         assert out[au] == pytest.approx(v, abs=2e-3), au
-    assert out["AU12"] == pytest.approx(0.45, abs=2e-3)          # mean of the sides
-    assert out["AU12L"] > out["AU12R"] + 0.8                     # side is recovered
+    assert out["AU12"] == pytest.approx(0.45, abs=2e-3)  # mean of the sides
+    assert out["AU12L"] > out["AU12R"] + 0.8  # side is recovered
     strongest = sorted((k for k in out if not k.endswith(("L", "R"))), key=lambda k: -out[k])[:3]
     assert "AU20" not in strongest or out["AU20"] == pytest.approx(0.4, abs=5e-3)
 

@@ -60,7 +60,9 @@ def face_mesh(step=1.5, offset=0.0, half=(70.0, 90.0)):
     n, m = X.shape
     idx = np.arange(n * m).reshape(n, m)
     a, b, c, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, 1:], idx[1:, :-1]
-    F = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)])
+    F = np.concatenate(
+        [np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)]
+    )
     return V, F
 
 
@@ -107,8 +109,12 @@ def test_rotation_from_euler_convention():
     # Rx(90) Ry(90) applied to +x: Ry(90) sends +x to -z, Rx(90) sends -z to +y
     R = rotation_from_euler(pitch_deg=90.0, yaw_deg=90.0)
     np.testing.assert_allclose(R @ [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], atol=1e-12)
-    np.testing.assert_allclose(rotation_from_euler(0.0, 30.0) @ [0, 0, 1.0], [0.5, 0, np.sqrt(3) / 2], atol=1e-12)
-    np.testing.assert_allclose(rotation_from_euler(30.0, 0.0) @ [0, 1.0, 0], [0, np.sqrt(3) / 2, 0.5], atol=1e-12)
+    np.testing.assert_allclose(
+        rotation_from_euler(0.0, 30.0) @ [0, 0, 1.0], [0.5, 0, np.sqrt(3) / 2], atol=1e-12
+    )
+    np.testing.assert_allclose(
+        rotation_from_euler(30.0, 0.0) @ [0, 1.0, 0], [0, np.sqrt(3) / 2, 0.5], atol=1e-12
+    )
 
 
 def test_regions_never_touch_mouth_and_chin():
@@ -190,8 +196,12 @@ def test_similarity_alignment_recovers_scale():
     T_true = RigidTransform(random_rigid(rng, 3.0, 4.0).rotation, [1.0, -2.0, 3.0], 0.97)
     inv = T_true.inverse()
     res = align_scans(
-        (inv.apply(Vm), Fm), (Vf, Ff), {k: inv.apply(v[None])[0] for k, v in lm.items()}, lm,
-        similarity=True, region="stable",
+        (inv.apply(Vm), Fm),
+        (Vf, Ff),
+        {k: inv.apply(v[None])[0] for k, v in lm.items()},
+        lm,
+        similarity=True,
+        region="stable",
     )
     assert res.transform.scale == pytest.approx(0.97, abs=2e-4)
     assert np.abs(res.transform.apply(inv.apply(Vm)) - Vm).max() < 0.05
@@ -215,7 +225,10 @@ def test_robust_icp_huber_and_failure():
 def test_alignment_needs_stable_landmarks():
     V, F = face_mesh(step=3.0)
     lm = face_landmarks()
-    few = {k: lm[k] for k in ("Nose tip", "Left mouth corner", "Right mouth corner", "Inner left eye corner")}
+    few = {
+        k: lm[k]
+        for k in ("Nose tip", "Left mouth corner", "Right mouth corner", "Inner left eye corner")
+    }
     with pytest.raises(LandmarkError, match="at least 3 stable landmarks") as e:
         align_scans((V, F), (V, F), few, lm)
     assert "Outer left eye corner" in e.value.missing
@@ -231,7 +244,9 @@ def test_bs900_scans_align_to_identity(shared):
     for code in ("LFAU_20",):
         stem = f"bs900_{code}_0"
         res = align_scans(ts.scan(stem), ts.scan(ns), fixed_index=ts.scan_index(ns))
-        ang, dt, disp = transform_error(res.transform, RigidTransform(), ts.truth_vertices(stem)[:9409])
+        ang, dt, disp = transform_error(
+            res.transform, RigidTransform(), ts.truth_vertices(stem)[:9409]
+        )
         assert ang < 0.1 and dt < 0.2, (stem, ang, dt, disp)
 
 

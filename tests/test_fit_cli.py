@@ -12,13 +12,27 @@ import pytest
 from jaxface.fit.pipeline import JSON_KEYS
 
 STEM = "bs900_LFAU_26_0"  # jaw opening (ICT jawOpen 0.5): chin and lower lip move 15-18 mm
-FAST = ["--points", "600", "--outer-iterations", "3", "--levels", "2", "--pitch-knots", "6",
-        "--max-steps", "20"]
+FAST = [
+    "--points",
+    "600",
+    "--outer-iterations",
+    "3",
+    "--levels",
+    "2",
+    "--pitch-knots",
+    "6",
+    "--max-steps",
+    "20",
+]
 
 
 def _run(args, timeout=900):
-    return subprocess.run([sys.executable, "-m", "jaxface.cli", "fit", *args], capture_output=True, text=True,
-                          timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-m", "jaxface.cli", "fit", *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -27,8 +41,18 @@ def cli_fit(tmp_path_factory):
 
     root = shared_path("data", "bosphorus_style")
     out = tmp_path_factory.mktemp("fit")
-    proc = _run(["--neutral", str(root / "bs900_N_N_0.bnt"), "--scan", str(root / f"{STEM}.bnt"),
-                 "--out", str(out), "--quiet", *FAST])
+    proc = _run(
+        [
+            "--neutral",
+            str(root / "bs900_N_N_0.bnt"),
+            "--scan",
+            str(root / f"{STEM}.bnt"),
+            "--out",
+            str(out),
+            "--quiet",
+            *FAST,
+        ]
+    )
     return root, out, proc
 
 
@@ -39,7 +63,9 @@ def test_cli_writes_json_contract_and_ply(cli_fit):
     for key in JSON_KEYS:
         assert key in doc, key
     assert set(doc["jaw"]) == {"pitch_deg", "yaw_deg", "protrusion_mm"}
-    assert len(doc["activations"]) >= 20 and all(0.0 <= v <= 1.0 for v in doc["activations"].values())
+    assert len(doc["activations"]) >= 20 and all(
+        0.0 <= v <= 1.0 for v in doc["activations"].values()
+    )
     assert set(doc["baselines"]) == {"B0", "B1"}
     assert doc["metrics"]["unit"] == "mm" and doc["frame"]["units"] == "mm"
     assert doc["solver"]["status"] and doc["solver"]["steps"] > 0 and doc["solver"]["time_s"] > 0
@@ -85,12 +111,31 @@ def test_cli_missing_landmarks_is_a_clear_error(tmp_path):
     # a scan without its .lm3 beside it (a link, not a copy of the data)
     link = tmp_path / "bs900_LFAU_12_0.bnt"
     link.symlink_to(root / "bs900_LFAU_12_0.bnt")
-    proc = _run(["--neutral", str(root / "bs900_N_N_0.bnt"), "--scan", str(link), "--out", str(tmp_path / "o")])
+    proc = _run(
+        [
+            "--neutral",
+            str(root / "bs900_N_N_0.bnt"),
+            "--scan",
+            str(link),
+            "--out",
+            str(tmp_path / "o"),
+        ]
+    )
     assert proc.returncode == 2
     assert "no landmarks" in proc.stderr and "bs900_LFAU_12_0.lm3" in proc.stderr
     # an explicit landmark file that does not exist: missing file (exit code 3)
-    proc = _run(["--neutral", str(root / "bs900_N_N_0.bnt"), "--scan", str(root / "bs900_LFAU_12_0.bnt"),
-                 "--scan-landmarks", str(tmp_path / "nope.lm3"), "--out", str(tmp_path / "o")])
+    proc = _run(
+        [
+            "--neutral",
+            str(root / "bs900_N_N_0.bnt"),
+            "--scan",
+            str(root / "bs900_LFAU_12_0.bnt"),
+            "--scan-landmarks",
+            str(tmp_path / "nope.lm3"),
+            "--out",
+            str(tmp_path / "o"),
+        ]
+    )
     assert proc.returncode == 3
     assert "nope.lm3" in proc.stderr
     assert not (tmp_path / "o").exists() or not any((tmp_path / "o").iterdir())

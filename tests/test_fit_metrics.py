@@ -27,7 +27,9 @@ def grid_plane(n=11, size=10.0, z=0.0):
     V = np.stack([X.ravel(), Y.ravel(), np.full(X.size, z)], 1)
     idx = np.arange(n * n).reshape(n, n)
     a, b, c, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, 1:], idx[1:, :-1]
-    F = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)])
+    F = np.concatenate(
+        [np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)]
+    )
     return V, F
 
 
@@ -42,7 +44,9 @@ def test_closest_on_triangles_matches_trimesh():
     p = 2.0 * rng.normal(size=(n, 3))
     q, bary = closest_on_triangles(p, a, b, c)
     ref = trimesh.triangles.closest_point(np.stack([a, b, c], 1), p)
-    np.testing.assert_allclose(np.linalg.norm(p - q, axis=1), np.linalg.norm(p - ref, axis=1), atol=1e-7)
+    np.testing.assert_allclose(
+        np.linalg.norm(p - q, axis=1), np.linalg.norm(p - ref, axis=1), atol=1e-7
+    )
     assert bary.min() >= 0.0
     np.testing.assert_allclose(bary.sum(1), 1.0, atol=1e-12)
     np.testing.assert_allclose(q, np.einsum("kj,kjd->kd", bary, np.stack([a, b, c], 1)), atol=1e-12)
@@ -169,7 +173,7 @@ def test_scan_points_on_skin_outside_the_face_region_do_not_count():
     m = fit_metrics((VV, FF), scan, face_mask=mask)
     assert m.scan_to_fit["all"].n == 2
     assert m.scan_to_fit["all"].mean == pytest.approx(0.75)
-    assert fit_metrics((VV, FF), scan).scan_to_fit["all"].n == 4     # no mask: every point
+    assert fit_metrics((VV, FF), scan).scan_to_fit["all"].n == 4  # no mask: every point
 
 
 def test_sphere_truth_to_fit_hand_computed():
@@ -223,7 +227,9 @@ def test_face_plane_from_landmarks():
     h = plane.height(np.array([lm["Nose tip"] + 3 * plane.normal, lm["Chin middle"]]))
     assert h[0] == pytest.approx(3.0)
     assert h[1] < 0
-    assert plane.is_upper(np.array([lm["Inner left eye corner"], lm["Left mouth corner"]])).tolist() == [True, False]
+    assert plane.is_upper(
+        np.array([lm["Inner left eye corner"], lm["Left mouth corner"]])
+    ).tolist() == [True, False]
     with pytest.raises(LandmarkError, match="Nose tip"):
         FacePlane.from_landmarks({k: v for k, v in lm.items() if k != "Nose tip"})
 

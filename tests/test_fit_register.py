@@ -64,7 +64,9 @@ def grid(step, half, fn, offset=0.0):
     n, m = X.shape
     idx = np.arange(n * m).reshape(n, m)
     a, b, c, d = idx[:-1, :-1], idx[:-1, 1:], idx[1:, 1:], idx[1:, :-1]
-    F = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)])
+    F = np.concatenate(
+        [np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)]
+    )
     return V, F
 
 
@@ -166,8 +168,13 @@ def test_register_errors():
     # scan far from where its landmarks say: nothing overlaps
     far = {k: v for k, v in ls.items()}
     with pytest.raises(FitError, match="do not overlap"):
-        register_template((Vs + [0.0, 0.0, 300.0], Fs), far, TriMesh(Vt, Ft), lt,
-                          options=RegisterOptions(smoothing_mm=(10.0,), final_iterations=0))
+        register_template(
+            (Vs + [0.0, 0.0, 300.0], Fs),
+            far,
+            TriMesh(Vt, Ft),
+            lt,
+            options=RegisterOptions(smoothing_mm=(10.0,), final_iterations=0),
+        )
 
 
 def test_baselines_on_synthetic_expression():
@@ -177,7 +184,9 @@ def test_baselines_on_synthetic_expression():
 
     T = RigidTransform(np.eye(3), [1.0, -2.0, 0.5])  # expression frame -> neutral frame
     expr = {k: T.inverse().apply(v[None])[0] for k, v in ls.items()}
-    expr["Left mouth corner"] = T.inverse().apply((ls["Left mouth corner"] + [3.0, 2.0, -1.0])[None])[0]
+    expr["Left mouth corner"] = T.inverse().apply(
+        (ls["Left mouth corner"] + [3.0, 2.0, -1.0])[None]
+    )[0]
     b0 = baseline_b0(reg, T)
     np.testing.assert_allclose(b0.vertices, T.inverse().apply(reg.vertices), atol=1e-12)
     b1 = baseline_b1(reg, expr, T)
@@ -218,7 +227,9 @@ def head_registrations(truth_set):
     out = {}
     for subj in ("bs900", "bs901"):
         ns = truth_set.neutral_stem(subj)
-        out[subj] = register_template(truth_set.scan(ns), template=head, scan_index=truth_set.scan_index(ns))
+        out[subj] = register_template(
+            truth_set.scan(ns), template=head, scan_index=truth_set.scan_index(ns)
+        )
     return out
 
 
@@ -246,7 +257,9 @@ def test_default_head_registration_accuracy(truth_set, head_registrations, subje
     ns = truth_set.neutral_stem(subject)
     ev = evaluate_against_truth(reg.mesh, truth_set, ns)
     coarse = evaluate_against_truth(reg.coarse, truth_set, ns)
-    print(f"\n{subject} default head: truth error {ev.error['all']}, landmark TPS only {coarse.mean:.3f} mm")
+    print(
+        f"\n{subject} default head: truth error {ev.error['all']}, landmark TPS only {coarse.mean:.3f} mm"
+    )
     assert ev.n_region > 4000
     assert ev.mean <= 0.3, ev.error["all"]  # issue-7 acceptance number
     assert coarse.mean > 3 * ev.mean  # the ICP refinement is what gets there
@@ -261,8 +274,11 @@ def test_ict_template_registration_bs901(truth_set):
 
     tpl = ict_template(truth=truth_set)
     ns = truth_set.neutral_stem("bs901")
-    reg = register_template(truth_set.scan(ns), template=Template(tpl.mesh, tpl.landmarks, tpl.face_mask, "ICT"),
-                            scan_index=truth_set.scan_index(ns))
+    reg = register_template(
+        truth_set.scan(ns),
+        template=Template(tpl.mesh, tpl.landmarks, tpl.face_mask, "ICT"),
+        scan_index=truth_set.scan_index(ns),
+    )
     ev = evaluate_against_truth(reg.mesh, truth_set, ns)
     assert ev.mean <= 0.1, ev.error["all"]
     # same topology as the truth: vertex-to-vertex error over the covered face region
@@ -297,9 +313,15 @@ def test_baselines_on_all_scans(truth_set, head_registrations):
             e2 = m2 = None
             if au is not None:
                 src = "bs901" if subj == "bs900" else "bs900"
-                code = stem[len(subj) + 1:]
-                b2 = baseline_b2(reg, truth_set.scan(stem), T, truth_set.scan(truth_set.neutral_stem(src)),
-                                 truth_set.scan(f"{src}_{code}"), au)
+                code = stem[len(subj) + 1 :]
+                b2 = baseline_b2(
+                    reg,
+                    truth_set.scan(stem),
+                    T,
+                    truth_set.scan(truth_set.neutral_stem(src)),
+                    truth_set.scan(f"{src}_{code}"),
+                    au,
+                )
                 e2, m2 = evaluate_against_truth(b2.mesh, truth_set, stem).mean, b2.magnitude
             rows.append((stem, e0.n_region, e0.mean, e1.mean, e2, m2))
             if subj == "bs900" and stem.endswith(("LFAU_26_0", "UFAU_2_0")):
@@ -324,8 +346,8 @@ def test_baselines_on_all_scans(truth_set, head_registrations):
     with_b2 = [r for r in rows if r[4] is not None]
     assert len(with_b2) == 12  # UFAU_1, _2, _4, LFAU_12, _12L, _20 of both subjects
     for r in with_b2:
-        assert r[4] < 0.8 * r[2], r   # the transferred AU explains much of the motion
-        assert 0.3 < r[5] < 1.7, r    # at about the source's magnitude (same ICT expression)
+        assert r[4] < 0.8 * r[2], r  # the transferred AU explains much of the motion
+        assert 0.3 < r[5] < 1.7, r  # at about the source's magnitude (same ICT expression)
 
 
 def test_b2_action_unit_reads_the_scan_name():
@@ -334,8 +356,14 @@ def test_b2_action_unit_reads_the_scan_name():
     assert b2_action_unit("some/dir/bs123_UFAU_4_0.lm3") == "4"
     assert b2_action_unit("bs000_LFAU_20_0") == "20"
     # no Erdoğdu layout (AU9, AU26), emotions, combinations, neutral, other names
-    for name in ("bs000_LFAU_9_0", "bs000_LFAU_26_0", "bs000_E_HAPPY_0", "bs000_CAU_A12A25_0",
-                 "bs000_N_N_0", "face.ply"):
+    for name in (
+        "bs000_LFAU_9_0",
+        "bs000_LFAU_26_0",
+        "bs000_E_HAPPY_0",
+        "bs000_CAU_A12A25_0",
+        "bs000_N_N_0",
+        "face.ply",
+    ):
         assert b2_action_unit(name) is None, name
 
 
@@ -363,4 +391,6 @@ def test_b2_does_not_depend_on_the_expression_scan_frame(truth_set, head_registr
     assert abs(a.magnitude - b.magnitude) < 2e-3
     np.testing.assert_allclose(b.mesh.vertices, Q.apply(a.mesh.vertices), atol=0.02)
     fixed = baseline_b2(reg, pts, T.compose(Q.inverse()), *src, "2", magnitude=0.0)
-    np.testing.assert_allclose(fixed.mesh.vertices, Q.apply(baseline_b0(reg, T).vertices), atol=1e-6)
+    np.testing.assert_allclose(
+        fixed.mesh.vertices, Q.apply(baseline_b0(reg, T).vertices), atol=1e-6
+    )

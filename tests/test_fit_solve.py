@@ -38,7 +38,9 @@ def test_hermite_sum_reproduces_quadratics_between_nonuniform_knots():
     knots = np.array([0.0, 0.15, 0.5, 0.6, 1.0])
     c, vals, slopes = _quadratic_tables(knots)
     x = np.array([0.07, 0.55, 0.93])
-    got = np.asarray(hermite_sum(jnp.asarray(x), jnp.asarray(knots), jnp.asarray(vals), jnp.asarray(slopes)))
+    got = np.asarray(
+        hermite_sum(jnp.asarray(x), jnp.asarray(knots), jnp.asarray(vals), jnp.asarray(slopes))
+    )
     want = sum(c[m, 0] + c[m, 1] * x[m] + c[m, 2] * x[m] ** 2 for m in range(3))
     np.testing.assert_allclose(got, want, atol=1e-12)
 
@@ -55,13 +57,17 @@ def test_hermite_sum_custom_derivative_matches_finite_differences():
         x = jnp.asarray(x)
         J = jax.jacfwd(f)(x)  # (6, 3, 4) through the custom rule
         h = 1e-6
-        fd = np.stack([(f(x.at[i].add(h)) - f(x.at[i].add(-h))) / (2 * h) for i in range(4)], axis=-1)
+        fd = np.stack(
+            [(f(x.at[i].add(h)) - f(x.at[i].add(-h))) / (2 * h) for i in range(4)], axis=-1
+        )
         np.testing.assert_allclose(np.asarray(J), fd, atol=1e-7)
     # tangents of the tables fall back to plain autodiff (linear in the tables)
     x = jnp.asarray([0.2, 0.4, 0.7, 0.95])
     dv = jnp.asarray(rng.normal(size=vals.shape))
     _, t = jax.jvp(lambda v: hermite_sum(x, kn, v, slopes), (vals,), (dv,))
-    np.testing.assert_allclose(np.asarray(t), np.asarray(_hermite_parts(x, kn, dv, slopes * 0)[0]), atol=1e-12)
+    np.testing.assert_allclose(
+        np.asarray(t), np.asarray(_hermite_parts(x, kn, dv, slopes * 0)[0]), atol=1e-12
+    )
 
 
 # ------------------------------------------------------------------------------ parameters
@@ -72,15 +78,22 @@ def test_activation_map_is_bounded_smooth_and_invertible():
     # bounds are reached at finite parameters, with zero slope (no run-away at a bound)
     g = jax.vmap(jax.grad(activations_from_z))
     np.testing.assert_allclose(np.asarray(g(jnp.asarray([0.0, 1.0]))), 0.0, atol=1e-12)
-    np.testing.assert_allclose(np.asarray(activations_from_z(jnp.asarray([0.0, 1.0]))), [0.0, 1.0], atol=1e-15)
+    np.testing.assert_allclose(
+        np.asarray(activations_from_z(jnp.asarray([0.0, 1.0]))), [0.0, 1.0], atol=1e-15
+    )
     aa = jnp.asarray([0.0, 0.02, 0.5, 0.97, 1.0])
-    np.testing.assert_allclose(np.asarray(activations_from_z(z_from_activations(aa))), aa, atol=1e-12)
+    np.testing.assert_allclose(
+        np.asarray(activations_from_z(z_from_activations(aa))), aa, atol=1e-12
+    )
 
 
 def test_rotation_vector_matches_scipy_and_has_finite_gradient_at_zero():
     w = np.array([3.0, -2.0, 5.0])
-    np.testing.assert_allclose(np.asarray(rotation_from_rotvec_deg(jnp.asarray(w))),
-                               Rotation.from_rotvec(np.radians(w)).as_matrix(), atol=1e-12)
+    np.testing.assert_allclose(
+        np.asarray(rotation_from_rotvec_deg(jnp.asarray(w))),
+        Rotation.from_rotvec(np.radians(w)).as_matrix(),
+        atol=1e-12,
+    )
 
     def f(v):
         return jnp.sum(rotation_from_rotvec_deg(v) @ jnp.asarray([1.0, 2.0, 3.0]))
@@ -98,7 +111,12 @@ def _plane(n=21, spacing=1.0):
     X, Y = np.meshgrid(xs, xs)
     v = np.stack([X.ravel(), Y.ravel(), np.zeros(X.size)], 1)
     ids = np.arange(n * n).reshape(n, n)
-    a, b, c, d = ids[:-1, :-1].ravel(), ids[:-1, 1:].ravel(), ids[1:, 1:].ravel(), ids[1:, :-1].ravel()
+    a, b, c, d = (
+        ids[:-1, :-1].ravel(),
+        ids[:-1, 1:].ravel(),
+        ids[1:, 1:].ravel(),
+        ids[1:, :-1].ravel(),
+    )
     t = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
     return v, t
 
@@ -111,12 +129,19 @@ def test_correspondences_on_a_plane_signed_distance_rejection_and_weights():
     local = np.arange(len(v))
     rng = np.random.default_rng(0)
     q = np.column_stack([rng.uniform(-4, 4, 40), rng.uniform(-4, 4, 40), rng.uniform(0.1, 1.0, 40)])
-    q = np.vstack([q, [[0.0, 0.0, 30.0]],  # too far
-                   [[8.0, 0.0, 0.2]],       # beyond the face region's border
-                   [[1.0, 1.0, 2.5]]])      # an outlier for the robust weights
+    q = np.vstack(
+        [
+            q,
+            [[0.0, 0.0, 30.0]],  # too far
+            [[8.0, 0.0, 0.2]],  # beyond the face region's border
+            [[1.0, 1.0, 2.5]],
+        ]
+    )  # an outlier for the robust weights
     valid = np.ones(len(q), bool)
     nrm = np.tile([0.0, 0.0, 1.0], (len(q), 1))
-    c = find_correspondences(v, t, face_tri, local, q, nrm, valid, max_distance=5.0, robust_floor=0.5)
+    c = find_correspondences(
+        v, t, face_tri, local, q, nrm, valid, max_distance=5.0, robust_floor=0.5
+    )
     np.testing.assert_allclose(c.distance[:40], -q[:40, 2], atol=1e-12)  # n . (S - q), n = +z
     assert c.weight[40] == 0 and c.weight[41] == 0
     assert c.weight[42] == 0  # |r| = 2.5 mm beyond the Tukey cut-off (MAD scale, floor 0.5)
@@ -126,8 +151,17 @@ def test_correspondences_on_a_plane_signed_distance_rejection_and_weights():
     pts = np.einsum("kc,kcd->kd", c.bary[:40], v[t[c.tri[:40]]])
     np.testing.assert_allclose(pts[:, :2], q[:40, :2], atol=1e-12)
     with pytest.raises(FitError, match="no scan point"):
-        find_correspondences(v, t, face_tri, local, q[:40] + [0, 0, 50], nrm[:40], valid[:40],
-                             max_distance=5.0, robust_floor=0.5)
+        find_correspondences(
+            v,
+            t,
+            face_tri,
+            local,
+            q[:40] + [0, 0, 50],
+            nrm[:40],
+            valid[:40],
+            max_distance=5.0,
+            robust_floor=0.5,
+        )
 
 
 def test_active_set_holds_and_releases_bounds_by_the_gradient_sign():
@@ -135,7 +169,9 @@ def test_active_set_holds_and_releases_bounds_by_the_gradient_sign():
     g = np.array([0.3, -0.2, 1.0, -0.5, -0.1, 0.2, 1e-6])
     free = np.array([1, 1, 1, 0, 0, 0, 1], float)
     zf = np.array([0, 0, 0, 0, 1, 0, 0], float)
-    f2, z2, zs, n = update_active_set(a, g, free, zf, tol_g=1e-4, locked=[False] * 5 + [True, False])
+    f2, z2, zs, n = update_active_set(
+        a, g, free, zf, tol_g=1e-4, locked=[False] * 5 + [True, False]
+    )
     # 0: pushed below 0 -> held at 0; 1: pushed above 1 -> held at 1; 2: interior stays free;
     # 3: held at 0 but the gradient points inside -> released; 4: held at 1, gradient pushes
     # further out -> stays; 5: locked at 0 whatever the gradient; 6: near 0 but inside the
@@ -145,16 +181,35 @@ def test_active_set_holds_and_releases_bounds_by_the_gradient_sign():
     assert n == 3 and np.isfinite(zs[3]) and np.isnan(zs[[0, 1, 2, 4, 5, 6]]).all()
     assert 0.0 < float(activations_from_z(zs[3])) < 0.05
     # anti-cycling: a held activation marked `keep` is not released whatever its gradient
-    f3, _, zs3, n3 = update_active_set(a, g, free, zf, tol_g=1e-4, locked=[False] * 5 + [True, False],
-                                       keep=[False, False, False, True, False, False, False])
+    f3, _, zs3, n3 = update_active_set(
+        a,
+        g,
+        free,
+        zf,
+        tol_g=1e-4,
+        locked=[False] * 5 + [True, False],
+        keep=[False, False, False, True, False, False, False],
+    )
     assert f3[3] == 0 and np.isnan(zs3[3]) and n3 == 2
 
 
 # ------------------------------------------------------------------------------ round trip
-CONTROLS = ("zygomaticus_major_L", "zygomaticus_major_R", "frontalis_medial_L", "frontalis_medial_R",
-            "depressor_anguli_oris_L", "corrugator_R")
-TRUE = {"zygomaticus_major_L": 0.6, "zygomaticus_major_R": 0.45, "frontalis_medial_L": 0.5,
-        "frontalis_medial_R": 0.5, "depressor_anguli_oris_L": 0.0, "corrugator_R": 0.3}
+CONTROLS = (
+    "zygomaticus_major_L",
+    "zygomaticus_major_R",
+    "frontalis_medial_L",
+    "frontalis_medial_R",
+    "depressor_anguli_oris_L",
+    "corrugator_R",
+)
+TRUE = {
+    "zygomaticus_major_L": 0.6,
+    "zygomaticus_major_R": 0.45,
+    "frontalis_medial_L": 0.5,
+    "frontalis_medial_R": 0.5,
+    "depressor_anguli_oris_L": 0.0,
+    "corrugator_R": 0.3,
+}
 TRUE_PITCH = 5.0
 
 
@@ -177,12 +232,18 @@ def round_trip():
     a = rig.activations(TRUE)
     x = np.asarray(synthesize(rig, a, JawPose(TRUE_PITCH)))
     expr = scan_of(x)
-    subject = subject_from_rig(rig, neutral, face_mask=head.face_mask,
-                               options=SubjectOptions(levels=2, pitch_knots=6, controls=CONTROLS))
+    subject = subject_from_rig(
+        rig,
+        neutral,
+        face_mask=head.face_mask,
+        options=SubjectOptions(levels=2, pitch_knots=6, controls=CONTROLS),
+    )
     # 40 LM steps per inner solve (the default): since the modiolus gain went from 0.6 to 1,
     # the last inner solve of this case needs 21-30 (it stopped at 20, 0.0014 mm off); with the
     # 10 mm lower-face tissue footprint, one outer iteration with extra ones needs more than 30
-    opt = FitOptions(n_points=800, outer_iterations=4, max_steps=40, jaw_starts=(0.0,), controls=CONTROLS)
+    opt = FitOptions(
+        n_points=800, outer_iterations=4, max_steps=40, jaw_starts=(0.0,), controls=CONTROLS
+    )
     (res,) = fit_expressions(subject, [expr], options=opt)
     return subject, res, x, opt, expr, neutral
 
@@ -226,17 +287,23 @@ def test_au_motion_readout_matches_exact_syntheses_of_each_aus_share(round_trip)
     def only(*muscles):
         return np.where(np.isin(names, muscles), a, 0.0)
 
-    ref = {"AU12": rms(only("zygomaticus_major_L", "zygomaticus_major_R"), np.zeros(3)),
-           "AU12L": rms(only("zygomaticus_major_L"), np.zeros(3)),
-           "AU1": rms(only("frontalis_medial_L", "frontalis_medial_R"), np.zeros(3)),
-           "AU26": rms(np.zeros(len(names)), [min(max(je[0], 0.0), 10.0), 0.0, 0.0])}
+    ref = {
+        "AU12": rms(only("zygomaticus_major_L", "zygomaticus_major_R"), np.zeros(3)),
+        "AU12L": rms(only("zygomaticus_major_L"), np.zeros(3)),
+        "AU1": rms(only("frontalis_medial_L", "frontalis_medial_R"), np.zeros(3)),
+        "AU26": rms(np.zeros(len(names)), [min(max(je[0], 0.0), 10.0), 0.0, 0.0]),
+    }
     for k, v in ref.items():
         assert v > 0.1, k
         assert abs(mo[k] - v) < 0.05 * v + 0.02, (k, mo[k], v)
     # the larger activation moves more: AU12L (0.6) over AU12R (0.45); absent AUs do not move
     assert mo["AU12L"] > mo["AU12R"] > 0.1
     assert mo["AU15"] < 0.05 and mo["AU27"] == 0.0
-    assert [k for k, _ in res.strongest_aus(2, bilateral_only=True, by="motion")][0] in ("AU12", "AU1", "AU26")
+    assert [k for k, _ in res.strongest_aus(2, bilateral_only=True, by="motion")][0] in (
+        "AU12",
+        "AU1",
+        "AU26",
+    )
     with pytest.raises(ValueError, match="sparse"):
         res.strongest_aus(3, by="size")
 
@@ -304,7 +371,10 @@ def test_sparse_au_readout_of_the_round_trip_names_its_aus(round_trip):
     assert abs(sp["AU12R"] - TRUE["zygomaticus_major_R"]) < 0.05, sp["AU12R"]
     assert res.au_sparse_misfit_mm is not None and 0.0 <= res.au_sparse_misfit_mm < 0.5
     doc = res.to_dict()
-    assert doc["au_sparse"] == pytest.approx(sp) and doc["au_sparse_misfit_mm"] == res.au_sparse_misfit_mm
+    assert (
+        doc["au_sparse"] == pytest.approx(sp)
+        and doc["au_sparse_misfit_mm"] == res.au_sparse_misfit_mm
+    )
 
 
 def test_au_motion_sparse_terms_equal_the_dense_reduced_model(round_trip):
@@ -366,8 +436,12 @@ def test_data_residual_jacobian_rule_equals_plain_autodiff(round_trip):
     rigid = jnp.asarray(y["rigid"]) + jnp.asarray([0.3, -0.2, 0.1, 0.5, -0.4, 0.2])
     n = M + 3
     u = jnp.asarray(rng.normal(size=n))
-    corrected = dataclasses.replace(pts, grad_u=u, grad_p=jnp.asarray(rng.uniform(0, 1, n)),
-                                    grad_r=jnp.asarray(rng.normal(size=pts.normal.shape[0] + 3 * pts.w_landmark.shape[0])))
+    corrected = dataclasses.replace(
+        pts,
+        grad_u=u,
+        grad_p=jnp.asarray(rng.uniform(0, 1, n)),
+        grad_r=jnp.asarray(rng.normal(size=pts.normal.shape[0] + 3 * pts.w_landmark.shape[0])),
+    )
     for p in (pts, corrected):
         for use_rigid in (True, False):
             rig = rigid if use_rigid else None
@@ -377,9 +451,11 @@ def test_data_residual_jacobian_rule_equals_plain_autodiff(round_trip):
             Jf = jax.jacfwd(f, argnums=arg)(a, jaw, rig)
             Jg = jax.jacfwd(g, argnums=arg)(a, jaw, rig)
             for x, ref in zip(Jf, Jg):
-                assert np.abs(np.asarray(ref)).max() > 1e-3   # not a zero block
+                assert np.abs(np.asarray(ref)).max() > 1e-3  # not a zero block
                 np.testing.assert_allclose(np.asarray(x), np.asarray(ref), rtol=1e-9, atol=1e-10)
-            np.testing.assert_allclose(np.asarray(f(a, jaw, rig)), np.asarray(g(a, jaw, rig)), rtol=1e-12, atol=1e-12)
+            np.testing.assert_allclose(
+                np.asarray(f(a, jaw, rig)), np.asarray(g(a, jaw, rig)), rtol=1e-12, atol=1e-12
+            )
             cf = jax.grad(lambda *q: jnp.sum(f(*q) ** 2), argnums=arg)(a, jaw, rig)
             cg = jax.grad(lambda *q: jnp.sum(g(*q) ** 2), argnums=arg)(a, jaw, rig)
             for x, ref in zip(cf, cg):
@@ -438,7 +514,7 @@ def test_symmetry_prior_is_quadratic_for_small_differences_and_saturates(round_t
     np.testing.assert_allclose(sym_cost(0.5, 0.2, 1e3), lam * 0.3**2, rtol=1e-6)
     small = sym_cost(0.21, 0.2, 0.1)
     np.testing.assert_allclose(small, lam * (0.1 * np.tanh(0.1)) ** 2, rtol=1e-6)
-    np.testing.assert_allclose(small, lam * 0.01**2, rtol=1e-2)   # quadratic within 1 %
+    np.testing.assert_allclose(small, lam * 0.01**2, rtol=1e-2)  # quadratic within 1 %
     np.testing.assert_allclose(sym_cost(0.2, 0.5, 0.1), lam * (0.1 * np.tanh(3.0)) ** 2, rtol=1e-9)
     c1, c2 = sym_cost(0.6, 0.2, 0.1), sym_cost(0.9, 0.2, 0.1)
     assert c1 < lam * 0.1**2 and c2 < lam * 0.1**2
@@ -449,8 +525,10 @@ def test_symmetry_prior_is_quadratic_for_small_differences_and_saturates(round_t
     g = np.asarray(jax.grad(_cost_of_activations)(a, res.fit.y, pts, pri))
     h = 1e-6
     for i in (iL, iR):
-        fd = (_cost_of_activations(a.at[i].add(h), res.fit.y, pts, pri)
-              - _cost_of_activations(a.at[i].add(-h), res.fit.y, pts, pri)) / (2 * h)
+        fd = (
+            _cost_of_activations(a.at[i].add(h), res.fit.y, pts, pri)
+            - _cost_of_activations(a.at[i].add(-h), res.fit.y, pts, pri)
+        ) / (2 * h)
         np.testing.assert_allclose(g[i], float(fd), rtol=1e-5, atol=1e-10)
     with pytest.raises(ValueError, match="symmetry_scale"):
         make_priors(names, dataclasses.replace(opt, symmetry_scale=0.0))
@@ -521,7 +599,7 @@ def test_a_fit_stopped_at_max_steps_goes_on(round_trip):
     (res,) = fit_expressions(subject, [expr], options=longer)
     assert len(res.fit.reports) > len(cut.fit.reports)
     assert res.status == "successful", res.solver_dict()
-    for r in res.fit.reports[len(cut.fit.reports):-1]:
+    for r in res.fit.reports[len(cut.fit.reports) : -1]:
         assert r.result == "nonlinear_max_steps_reached" or r.cost < r.cost0, r
 
 
@@ -530,8 +608,16 @@ def test_fit_rejects_unknown_controls(round_trip):
 
     subject = round_trip[0]
     with pytest.raises(FitError, match="unknown controls"):
-        fit_points(subject.forward, subject.response, subject.fit_ids, subject.face_triangles, [],
-                   subject.landmark_tri, subject.landmark_bary, FitOptions(controls=("no_such_muscle",)))
+        fit_points(
+            subject.forward,
+            subject.response,
+            subject.fit_ids,
+            subject.face_triangles,
+            [],
+            subject.landmark_tri,
+            subject.landmark_bary,
+            FitOptions(controls=("no_such_muscle",)),
+        )
 
 
 def test_batch_fit_matches_single_fits_in_input_order(round_trip):
@@ -544,7 +630,9 @@ def test_batch_fit_matches_single_fits_in_input_order(round_trip):
 
     subject, res, _, opt, expr, neutral = round_trip
     seen = []
-    batch = fit_expressions(subject, [neutral, expr], options=opt, on_result=lambda f: seen.append(f.stem))
+    batch = fit_expressions(
+        subject, [neutral, expr], options=opt, on_result=lambda f: seen.append(f.stem)
+    )
     assert [f.stem for f in batch] == seen and len(batch) == 2
     rest_fit, expr_fit = batch
     for n, v in res.activations.items():
@@ -569,20 +657,20 @@ def test_batched_inner_solve_map_equals_vmap(round_trip):
     pri = make_priors(subject.muscle_names, opt)
     y = res.fit.y
     y_far = dict(y)
-    y_far["jaw"] = y["jaw"] + 3.0                        # a start that needs other steps
+    y_far["jaw"] = y["jaw"] + 3.0  # a start that needs other steps
     Y0 = _stack([dict(y), y_far])
     P = _stack([res.fit.points, res.fit.points])
     out_map = solve_inner(Y0, P, pri, opt, mode="map")
     out_vmap = solve_inner(Y0, P, pri, opt, mode="vmap")
     steps_map, steps_vmap = out_map[2], out_vmap[2]
-    np.testing.assert_array_equal(steps_map, steps_vmap)    # each member's own step count
+    np.testing.assert_array_equal(steps_map, steps_vmap)  # each member's own step count
     # the premise: the members stop at different steps (which one needs more depends on how
     # close the fit's own end point is to the inner solve's minimum), so map mode's per-member
     # stopping is what is compared with vmap's
     assert steps_map[1] != steps_map[0]
     for a, b in zip(jax.tree_util.tree_leaves(out_map[0]), jax.tree_util.tree_leaves(out_vmap[0])):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-4)
-    np.testing.assert_allclose(out_map[3], out_vmap[3], rtol=1e-4, atol=1e-8)   # costs
+    np.testing.assert_allclose(out_map[3], out_vmap[3], rtol=1e-4, atol=1e-8)  # costs
     # padded to 8 members (the accelerator's fixed batch shape): the padding is cut from the
     # results and the two real members' solves are those of the unpadded batch
     out_pad = solve_inner(Y0, P, pri, opt, mode="vmap", pad_to=5)
@@ -605,15 +693,23 @@ def test_host_stack_and_index_equal_jax_stack_and_slicing():
     from jaxface.fit.solve import _index, _stack
 
     rng = np.random.default_rng(3)
-    trees = [{"z": jnp.asarray(rng.normal(size=5)), "ids": jnp.asarray(rng.integers(0, 9, (4, 3))),
-              "free": jnp.asarray(rng.random(5) > 0.5)} for _ in range(3)]
+    trees = [
+        {
+            "z": jnp.asarray(rng.normal(size=5)),
+            "ids": jnp.asarray(rng.integers(0, 9, (4, 3))),
+            "free": jnp.asarray(rng.random(5) > 0.5),
+        }
+        for _ in range(3)
+    ]
     got = _stack(trees)
     want = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *trees)
     for g, w in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want)):
         assert isinstance(g, jax.Array) and g.dtype == w.dtype and g.shape == w.shape
         np.testing.assert_array_equal(np.asarray(g), np.asarray(w))
     for i in range(3):
-        for g, w in zip(jax.tree_util.tree_leaves(_index(got, i)), jax.tree_util.tree_leaves(trees[i])):
+        for g, w in zip(
+            jax.tree_util.tree_leaves(_index(got, i)), jax.tree_util.tree_leaves(trees[i])
+        ):
             assert isinstance(g, jax.Array) and g.dtype == w.dtype
             np.testing.assert_array_equal(np.asarray(g), np.asarray(w))
 
@@ -622,7 +718,17 @@ def test_padded_batch_size_is_the_next_power_of_two():
     from jaxface.errors import FitError
     from jaxface.fit.solve import padded_batch_size
 
-    assert [padded_batch_size(n) for n in (1, 2, 3, 4, 5, 8, 11, 16, 17)] == [1, 2, 4, 4, 8, 8, 16, 16, 32]
+    assert [padded_batch_size(n) for n in (1, 2, 3, 4, 5, 8, 11, 16, 17)] == [
+        1,
+        2,
+        4,
+        4,
+        8,
+        8,
+        16,
+        16,
+        32,
+    ]
     with pytest.raises(FitError, match="at least one"):
         padded_batch_size(0)
 
@@ -646,8 +752,16 @@ def test_inner_solve_by_normal_equations_equals_qr(round_trip):
     sols = []
     for ls in (lx.QR(), _linear_solver(np.float64)):
         solver = optx.LevenbergMarquardt(rtol=opt.rtol, atol=opt.atol, linear_solver=ls)
-        sols.append(optx.least_squares(residuals, solver, y0, args=(res.fit.points, pri),
-                                       max_steps=opt.max_steps, throw=False))
+        sols.append(
+            optx.least_squares(
+                residuals,
+                solver,
+                y0,
+                args=(res.fit.points, pri),
+                max_steps=opt.max_steps,
+                throw=False,
+            )
+        )
     qr, ne = sols
     assert int(qr.stats["num_steps"]) > 1
     assert int(qr.stats["num_steps"]) == int(ne.stats["num_steps"])
@@ -684,7 +798,9 @@ def test_map_mode_traces_the_inner_solve_once_for_every_batch_size(round_trip, m
     assert len(traces) == 1
     # a member's solution does not depend on the batch it is in
     for n in (2, 3):
-        for a, b in zip(jax.tree_util.tree_leaves(outs[n][0]), jax.tree_util.tree_leaves(outs[1][0])):
+        for a, b in zip(
+            jax.tree_util.tree_leaves(outs[n][0]), jax.tree_util.tree_leaves(outs[1][0])
+        ):
             np.testing.assert_array_equal(np.asarray(a)[0], np.asarray(b)[0])
     np.testing.assert_array_equal(outs[3][2][:2], outs[2][2])
 
@@ -695,7 +811,12 @@ def test_gradient_correction_gives_the_exact_rigs_gradient(round_trip):
     reduced model's, which differs there."""
     import dataclasses
 
-    from jaxface.fit.solve import _data_residuals, _points_from_vertices, effective_z, gradient_correction
+    from jaxface.fit.solve import (
+        _data_residuals,
+        _points_from_vertices,
+        effective_z,
+        gradient_correction,
+    )
 
     subject, res = round_trip[:2]
     pts, y = res.fit.points, dict(res.fit.y)
@@ -723,7 +844,7 @@ def test_gradient_correction_gives_the_exact_rigs_gradient(round_trip):
 
     def half_cost(p, P):
         r_pt, r_lm = _data_residuals(p[:M], p[M:], y["rigid"], P, True)
-        return 0.5 * (jnp.sum(r_pt ** 2) + jnp.sum(r_lm ** 2))
+        return 0.5 * (jnp.sum(r_pt**2) + jnp.sum(r_lm**2))
 
     g_fixed = np.asarray(jax.grad(half_cost)(jnp.asarray(p0), fixed))
     g_reduced = np.asarray(jax.grad(half_cost)(jnp.asarray(p0), base))
@@ -733,9 +854,11 @@ def test_gradient_correction_gives_the_exact_rigs_gradient(round_trip):
         K = pts.normal.shape[0]
         r_pt = np.sqrt(pts.w_point) * np.sum(pts.normal * (x[:K] - pts.target[:K]), axis=-1)
         r_lm = np.sqrt(pts.w_landmark)[:, None] * (x[K:] - pts.target[K:])
-        return 0.5 * (np.sum(r_pt ** 2) + np.sum(r_lm ** 2))
+        return 0.5 * (np.sum(r_pt**2) + np.sum(r_lm**2))
 
-    checks = [names.index(n) for n in ("zygomaticus_major_L", "frontalis_medial_R", "corrugator_R")] + [M]
+    checks = [
+        names.index(n) for n in ("zygomaticus_major_L", "frontalis_medial_R", "corrugator_R")
+    ] + [M]
     h = 1e-4
     tol = 0.02 * np.abs(g_fixed[checks]).max() + 1e-7
     off = []
@@ -763,10 +886,16 @@ def test_gradient_correction_gives_the_exact_rigs_gradient(round_trip):
     smooth = np.concatenate([np.asarray(a0) > 1e-9, np.ones(np.asarray(u).size - M, bool)])
     assert smooth[:M].sum() >= 3
     scale = float(np.abs(np.asarray(u)).max())
-    np.testing.assert_allclose(np.asarray(u2)[smooth], np.asarray(u)[smooth], rtol=1e-7, atol=1e-9 * scale)
+    np.testing.assert_allclose(
+        np.asarray(u2)[smooth], np.asarray(u)[smooth], rtol=1e-7, atol=1e-9 * scale
+    )
     for got, want in ((pk2, pk), (r2, r)):
-        np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-9,
-                                   atol=1e-12 * float(np.abs(np.asarray(want)).max()))
+        np.testing.assert_allclose(
+            np.asarray(got),
+            np.asarray(want),
+            rtol=1e-9,
+            atol=1e-12 * float(np.abs(np.asarray(want)).max()),
+        )
 
 
 def test_restart_trigger_restarts_saturated_fits_that_did_not_converge():
@@ -776,8 +905,10 @@ def test_restart_trigger_restarts_saturated_fits_that_did_not_converge():
     from jaxface.fit.solve import _should_restart
 
     table = {  # (saturated, converged): (unconverged, saturated)
-        (True, False): (True, True), (True, True): (False, True),
-        (False, False): (False, False), (False, True): (False, False),
+        (True, False): (True, True),
+        (True, True): (False, True),
+        (False, False): (False, False),
+        (False, True): (False, False),
     }
     for (sat, conv), (want_u, want_s) in table.items():
         assert _should_restart("unconverged", sat, conv) is want_u, (sat, conv)
@@ -815,14 +946,26 @@ def test_bound_flip_restart_leaves_a_minimum_with_a_saturated_control():
     head = generic_head()
     rig = build_rig(head)
     bound = SkinLandmarks.of_rig(rig)
-    truth = {"buccinator_R": 1.0, "levator_labii_superioris_L": 0.5, "frontalis_medial_L": 0.6,
-             "risorius_L": 0.4}
+    truth = {
+        "buccinator_R": 1.0,
+        "levator_labii_superioris_L": 0.5,
+        "frontalis_medial_L": 0.6,
+        "risorius_L": 0.4,
+    }
     x = np.asarray(synthesize(rig, rig.activations(truth), JawPose(6.0, 0.0, 1.0)))
-    subject = subject_from_rig(rig, scan_skin(np.asarray(rig.rest), bound), face_mask=head.face_mask,
-                               options=SubjectOptions())
-    (res,) = fit_expressions(subject, [scan_skin(x, bound)],
-                             options=FitOptions(restart_iterations=4, init_activation=0.8, motion_fraction=0.0,
-                                                restart_when="saturated"))
+    subject = subject_from_rig(
+        rig,
+        scan_skin(np.asarray(rig.rest), bound),
+        face_mask=head.face_mask,
+        options=SubjectOptions(),
+    )
+    (res,) = fit_expressions(
+        subject,
+        [scan_skin(x, bound)],
+        options=FitOptions(
+            restart_iterations=4, init_activation=0.8, motion_fraction=0.0, restart_when="saturated"
+        ),
+    )
     r = res.fit.restart
     # the restart ran, won by far (measured 2e-4x the parent's cost) and is what is reported
     assert r and r["kept"] and r["cost_mm2"] < 0.5 * r["parent_cost_mm2"], r
@@ -899,7 +1042,9 @@ def test_scan_points_are_drawn_from_the_moving_region_as_the_options_say(round_t
         # seeded: the same draw again; another seed, another draw
         again = scan_fit_inputs(subject, expr, T, n, motion_fraction=f, motion_threshold_mm=thr)
         np.testing.assert_array_equal(again["points"], inp["points"])
-        other = scan_fit_inputs(subject, expr, T, n, seed=1, motion_fraction=f, motion_threshold_mm=thr)
+        other = scan_fit_inputs(
+            subject, expr, T, n, seed=1, motion_fraction=f, motion_threshold_mm=thr
+        )
         assert not np.array_equal(other["points"], inp["points"])
     # more than there are: every moving point, and the rest from the others
     # (the smile moves over 2000 of the scan's points beyond 2 mm: a higher threshold leaves fewer)
@@ -907,7 +1052,9 @@ def test_scan_points_are_drawn_from_the_moving_region_as_the_options_say(round_t
         few = scan_fit_inputs(subject, expr, T, n, motion_fraction=1.0, motion_threshold_mm=high)
         if 0 < few["n_moving"] < n:
             break
-    assert 0 < few["n_moving_drawn"] == few["n_moving"] < n and few["valid"].sum() == n, few["n_moving"]
+    assert 0 < few["n_moving_drawn"] == few["n_moving"] < n and few["valid"].sum() == n, few[
+        "n_moving"
+    ]
     assert far(few) > few["n_moving"]  # the rest holds moving points beyond 0.3 mm too
 
 

@@ -93,8 +93,9 @@ def test_mirror_symmetry(head):
     V = head.mesh.vertices
     np.testing.assert_allclose(V[head.mirror], V * np.array([-1.0, 1.0, 1.0]), atol=1e-9)
     assert np.array_equal(head.mirror[head.mirror], np.arange(len(V)))
+
     # the triangulation is mirrored too (orientation reversed by the reflection)
-    def canonical(F):       # rotate each triangle so that its smallest id comes first
+    def canonical(F):  # rotate each triangle so that its smallest id comes first
         k = np.argmin(F, axis=1)[:, None]
         G = np.take_along_axis(F, (k + np.arange(3)) % 3, axis=1)
         return G[np.lexsort(G.T[::-1])]
@@ -109,9 +110,15 @@ def test_boundaries_are_exactly_eyes_mouth_and_neck(head):
     assert len(loops) == 4
     as_sets = sorted((frozenset(map(int, lp)) for lp in loops), key=len)
     expected = {
-        "mouth": frozenset(map(int, np.concatenate([head.edges["upper_lip_edge"], head.edges["lower_lip_edge"]]))),
-        "eye_left": frozenset(map(int, np.concatenate([head.edges["upper_lid_left"], head.edges["lower_lid_left"]]))),
-        "eye_right": frozenset(map(int, np.concatenate([head.edges["upper_lid_right"], head.edges["lower_lid_right"]]))),
+        "mouth": frozenset(
+            map(int, np.concatenate([head.edges["upper_lip_edge"], head.edges["lower_lip_edge"]]))
+        ),
+        "eye_left": frozenset(
+            map(int, np.concatenate([head.edges["upper_lid_left"], head.edges["lower_lid_left"]]))
+        ),
+        "eye_right": frozenset(
+            map(int, np.concatenate([head.edges["upper_lid_right"], head.edges["lower_lid_right"]]))
+        ),
         "neck": frozenset(map(int, head.edges["neck"])),
     }
     assert set(as_sets) == set(expected.values())
@@ -120,11 +127,18 @@ def test_boundaries_are_exactly_eyes_mouth_and_neck(head):
     assert np.ptp(neck_y) < 1e-6 and neck_y[0] < head.landmarks["Chin middle"][1] - 40
 
 
-@pytest.mark.parametrize("upper,lower,corners", [
-    ("upper_lip_edge", "lower_lip_edge", ("Right mouth corner", "Left mouth corner")),
-    ("upper_lid_left", "lower_lid_left", ("Inner left eye corner", "Outer left eye corner")),
-    ("upper_lid_right", "lower_lid_right", ("Inner right eye corner", "Outer right eye corner")),
-])
+@pytest.mark.parametrize(
+    "upper,lower,corners",
+    [
+        ("upper_lip_edge", "lower_lip_edge", ("Right mouth corner", "Left mouth corner")),
+        ("upper_lid_left", "lower_lid_left", ("Inner left eye corner", "Outer left eye corner")),
+        (
+            "upper_lid_right",
+            "lower_lid_right",
+            ("Inner right eye corner", "Outer right eye corner"),
+        ),
+    ],
+)
 def test_slits_have_distinct_edges_meeting_at_the_corners(head, upper, lower, corners):
     up, lo = head.edges[upper], head.edges[lower]
     V = head.mesh.vertices
@@ -135,12 +149,12 @@ def test_slits_have_distinct_edges_meeting_at_the_corners(head, upper, lower, co
     for name, vid in zip(corners, (up[0], up[-1])):
         np.testing.assert_allclose(head.landmarks[name], V[vid], atol=1e-12)
         assert head.landmark_vertex[name] == vid
-    if "lid" in upper:                          # the lid hinge axis: inner -> outer corner
+    if "lid" in upper:  # the lid hinge axis: inner -> outer corner
         inner, outer = head.eye_axis(upper.rsplit("_", 1)[1])
         np.testing.assert_allclose([inner, outer], V[[up[0], up[-1]]], atol=1e-12)
     # the upper edge lies above the lower one at every column
     assert np.all(V[up[1:-1], 1] > V[lo[1:-1], 1])
-    np.testing.assert_allclose(V[up[1:-1], 0], V[lo[1:-1], 0], atol=0.25)   # same columns
+    np.testing.assert_allclose(V[up[1:-1], 0], V[lo[1:-1], 0], atol=0.25)  # same columns
     # each edge is a path of mesh edges
     E = {tuple(e) for e in head.mesh.edges.tolist()}
     for path in (up, lo):
@@ -151,11 +165,11 @@ def test_slits_have_distinct_edges_meeting_at_the_corners(head, upper, lower, co
 def test_closed_mouth_and_open_eyes(head):
     V, lm = head.mesh.vertices, head.landmarks
     gap = lm["Upper lip inner middle"][1] - lm["Lower lip inner middle"][1]
-    assert 0.3 < gap < 1.5                     # the lips touch (closed mouth), distinct edges
+    assert 0.3 < gap < 1.5  # the lips touch (closed mouth), distinct edges
     for side in ("left", "right"):
         up, lo = V[head.edges[f"upper_lid_{side}"]], V[head.edges[f"lower_lid_{side}"]]
         height = up[:, 1].max() - lo[:, 1].min()
-        assert 8.0 < height < 12.5             # palpebral fissure height (adults ~ 9-11 mm)
+        assert 8.0 < height < 12.5  # palpebral fissure height (adults ~ 9-11 mm)
         # lid margins lie in front of the eyeball, close to it
         c = head.eye_centers[0 if side == "left" else 1]
         r = np.linalg.norm(np.concatenate([up[1:-1], lo[1:-1]]) - c, axis=1)
@@ -169,7 +183,7 @@ def test_landmarks_complete_on_surface_and_sided(head):
     assert tuple(lm.names) == tuple(BOSPHORUS_LABELS)
     _, dist = head.mesh.closest_points(head.landmarks.positions)
     assert dist.max() < 0.5
-    check_side(head.landmarks)   # raises if mirrored
+    check_side(head.landmarks)  # raises if mirrored
     for name in BOSPHORUS_LABELS:
         if "left" in name.lower():
             assert head.landmarks[name][0] > 0, name
@@ -179,7 +193,9 @@ def test_landmarks_complete_on_surface_and_sided(head):
     for name in BOSPHORUS_LABELS:
         if "left" in name.lower() or "Left" in name:
             other = name.replace("left", "right").replace("Left", "Right")
-            np.testing.assert_allclose(head.landmarks[other], head.landmarks[name] * [-1, 1, 1], atol=1e-6)
+            np.testing.assert_allclose(
+                head.landmarks[other], head.landmarks[name] * [-1, 1, 1], atol=1e-6
+            )
 
 
 def test_landmark_anatomy(head):
@@ -189,33 +205,49 @@ def test_landmark_anatomy(head):
     # the nose tip is the most anterior point of the face
     assert tip[2] >= V[head.regions["face"], 2].max() - 0.01
     # vertical order along the midline
-    ys = [lm[n][1] for n in ("Inner left eyebrow", "Nose saddle left", "Nose tip", "Upper lip outer middle",
-                             "Upper lip inner middle", "Lower lip inner middle", "Lower lip outer middle",
-                             "Chin middle")]
+    ys = [
+        lm[n][1]
+        for n in (
+            "Inner left eyebrow",
+            "Nose saddle left",
+            "Nose tip",
+            "Upper lip outer middle",
+            "Upper lip inner middle",
+            "Lower lip inner middle",
+            "Lower lip outer middle",
+            "Chin middle",
+        )
+    ]
     assert all(a > b for a, b in zip(ys[:-1], ys[1:]))
     # eyebrows above the eyes, the eye corners inside the brow span
     assert lm["Middle left eyebrow"][1] > lm["Outer left eye corner"][1] + 15
-    assert lm["Inner left eye corner"][0] < lm["Outer left eye corner"][0] < lm["Outer left eyebrow"][0]
+    assert (
+        lm["Inner left eye corner"][0]
+        < lm["Outer left eye corner"][0]
+        < lm["Outer left eyebrow"][0]
+    )
     # ear lobes at the sides, behind the face
-    assert lm["Left ear lobe"][0] > 60 and lm["Left ear lobe"][2] < lm["Outer left eye corner"][2] - 60
+    assert (
+        lm["Left ear lobe"][0] > 60 and lm["Left ear lobe"][2] < lm["Outer left eye corner"][2] - 60
+    )
 
 
 def test_proportions_are_adult_human(head):
     """Ranges from adult anthropometry (Farkas' norms, both sexes, rounded outward)."""
     lm, V = head.landmarks, head.mesh.vertices
     d = lambda a, b: float(np.linalg.norm(lm[a] - lm[b]))  # noqa: E731
-    assert 28 < d("Inner left eye corner", "Inner right eye corner") < 40       # en-en
-    assert 80 < d("Outer left eye corner", "Outer right eye corner") < 100      # ex-ex
-    assert 24 < d("Inner left eye corner", "Outer left eye corner") < 36        # eye fissure length
-    assert 42 < d("Left mouth corner", "Right mouth corner") < 60               # ch-ch
-    assert 30 < d("Left nose peak", "Right nose peak") < 46                      # al-al
+    assert 28 < d("Inner left eye corner", "Inner right eye corner") < 40  # en-en
+    assert 80 < d("Outer left eye corner", "Outer right eye corner") < 100  # ex-ex
+    assert 24 < d("Inner left eye corner", "Outer left eye corner") < 36  # eye fissure length
+    assert 42 < d("Left mouth corner", "Right mouth corner") < 60  # ch-ch
+    assert 30 < d("Left nose peak", "Right nose peak") < 46  # al-al
     nasion_y = lm["Nose saddle left"][1] + 10.0
     menton_y = V[head.regions["face"] & (np.abs(V[:, 0]) < 3), 1].min()
-    assert 105 < nasion_y - menton_y < 135                                        # n-gn face height
-    assert 140 < np.ptp(V[:, 0][np.abs(V[:, 1] - 50) < 5]) < 170                  # head breadth eu-eu
+    assert 105 < nasion_y - menton_y < 135  # n-gn face height
+    assert 140 < np.ptp(V[:, 0][np.abs(V[:, 1] - 50) < 5]) < 170  # head breadth eu-eu
     glabella_z = V[(np.abs(V[:, 0]) < 2) & (V[:, 1] > 35) & (V[:, 1] < 70), 2].max()
-    assert 175 < glabella_z - V[:, 2].min() < 210                                 # head length g-op
-    assert 210 < V[:, 1].max() - menton_y < 245                                   # vertex to menton
+    assert 175 < glabella_z - V[:, 2].min() < 210  # head length g-op
+    assert 210 < V[:, 1].max() - menton_y < 245  # vertex to menton
     # nose projection: tip ahead of the alar base / cheek by 20-35 mm
     assert 20 < lm["Nose tip"][2] - lm["Left nose peak"][2] < 35
 
@@ -254,7 +286,7 @@ def test_teeth_are_closed_and_behind_the_lips(head):
     lm = head.landmarks
     for teeth in (head.upper_teeth, head.lower_teeth):
         TriMesh(teeth.vertices, teeth.triangles).validate()
-        assert teeth.boundary_loops == [] and teeth.signed_volume() > 500.0    # closed, outward
+        assert teeth.boundary_loops == [] and teeth.signed_volume() > 500.0  # closed, outward
         # arch shape: widest at the back, front on the midline
         v = teeth.vertices
         assert v[:, 2].max() < lm["Upper lip inner middle"][2] - 5.0
@@ -275,7 +307,9 @@ def test_teeth_are_closed_and_behind_the_lips(head):
 def test_teeth_and_eyes_do_not_cross_the_skin(head):
     for part in (head.upper_teeth, head.lower_teeth, *head.eyes):
         e = part.edges
-        assert not _segments_hit_mesh(head.mesh, part.vertices[e[:, 0]], part.vertices[e[:, 1]]).any()
+        assert not _segments_hit_mesh(
+            head.mesh, part.vertices[e[:, 0]], part.vertices[e[:, 1]]
+        ).any()
     # the eyeballs sit in their sockets, seen through the fissures
     for k, eye in enumerate(head.eyes):
         TriMesh(eye.vertices, eye.triangles).validate()
@@ -284,7 +318,9 @@ def test_teeth_and_eyes_do_not_cross_the_skin(head):
         np.testing.assert_allclose(eye.vertices.mean(axis=0)[:2], c[:2], atol=0.5)
         assert np.sign(c[0]) == (1 if k == 0 else -1)
         side = "left" if k == 0 else "right"
-        fissure = head.mesh.vertices[np.concatenate([head.edges[f"upper_lid_{side}"], head.edges[f"lower_lid_{side}"]])]
+        fissure = head.mesh.vertices[
+            np.concatenate([head.edges[f"upper_lid_{side}"], head.edges[f"lower_lid_{side}"]])
+        ]
         mid = fissure.mean(axis=0)
         # a ray from in front of the fissure centre hits the eyeball before anything else
         hit = eye.ray_cast(mid + [0, 0, 30.0], np.array([0.0, 0.0, -1.0]))

@@ -28,15 +28,24 @@ from jaxface.mesh import TriMesh
 def face_landmarks() -> Landmarks:
     """A plausible 24-landmark set in mm (left at +x), mirror-symmetric by construction."""
     half = {
-        "Outer left eyebrow": (58, 51, 79), "Middle left eyebrow": (38, 61, 98),
-        "Inner left eyebrow": (12, 58, 107), "Outer left eye corner": (44, 35, 87),
-        "Inner left eye corner": (18, 33, 92), "Nose saddle left": (8.5, 27, 106),
-        "Left nose peak": (18, 4, 102), "Left mouth corner": (33, -24, 92),
+        "Outer left eyebrow": (58, 51, 79),
+        "Middle left eyebrow": (38, 61, 98),
+        "Inner left eyebrow": (12, 58, 107),
+        "Outer left eye corner": (44, 35, 87),
+        "Inner left eye corner": (18, 33, 92),
+        "Nose saddle left": (8.5, 27, 106),
+        "Left nose peak": (18, 4, 102),
+        "Left mouth corner": (33, -24, 92),
         "Left ear lobe": (75, -10, 0),
     }
-    mid = {"Nose tip": (0, 3, 130), "Upper lip outer middle": (0, -21, 114),
-           "Upper lip inner middle": (0, -29, 110), "Lower lip inner middle": (0, -31, 111),
-           "Lower lip outer middle": (0, -40, 113), "Chin middle": (0, -57, 111)}
+    mid = {
+        "Nose tip": (0, 3, 130),
+        "Upper lip outer middle": (0, -21, 114),
+        "Upper lip inner middle": (0, -29, 110),
+        "Lower lip inner middle": (0, -31, 111),
+        "Lower lip outer middle": (0, -40, 113),
+        "Chin middle": (0, -57, 111),
+    }
     d = {}
     for left, right in MIRROR_PAIRS:
         x, y, z = half[left]
@@ -50,12 +59,24 @@ def test_label_tables():
     assert len(BOSPHORUS_LABELS) == 24 and len(set(BOSPHORUS_LABELS)) == 24
     assert BOSPHORUS_LABELS[-2:] == ("Left ear lobe", "Right ear lobe")
     assert FACE_LABELS == BOSPHORUS_LABELS[:22]
-    assert set(STABLE_LABELS) == {"Outer left eye corner", "Inner left eye corner",
-                                  "Inner right eye corner", "Outer right eye corner",
-                                  "Nose saddle left", "Nose saddle right", "Nose tip"}
+    assert set(STABLE_LABELS) == {
+        "Outer left eye corner",
+        "Inner left eye corner",
+        "Inner right eye corner",
+        "Outer right eye corner",
+        "Nose saddle left",
+        "Nose saddle right",
+        "Nose tip",
+    }
     # the exact label text of the Bosphorus notes
-    for lbl in ("Outer left eyebrow", "Nose saddle left", "Left nose peak",
-                "Upper lip outer middle", "Lower lip inner middle", "Chin middle"):
+    for lbl in (
+        "Outer left eyebrow",
+        "Nose saddle left",
+        "Left nose peak",
+        "Upper lip outer middle",
+        "Lower lip inner middle",
+        "Chin middle",
+    ):
         assert lbl in BOSPHORUS_LABELS
     # every pair is a left/right pair of canonical labels
     for left, right in MIRROR_PAIRS:
@@ -67,14 +88,24 @@ def test_mpeg4_fdp_table():
     assert set(MPEG4_FDP) <= set(BOSPHORUS_LABELS)
     assert len(set(MPEG4_FDP.values())) == len(MPEG4_FDP)  # one FDP per label
     expected = {
-        "Nose tip": "9.3", "Left mouth corner": "8.3", "Right mouth corner": "8.4",
-        "Outer left eye corner": "3.7", "Inner right eye corner": "3.8",
-        "Inner left eye corner": "3.11", "Outer right eye corner": "3.12",
-        "Chin middle": "2.10", "Upper lip outer middle": "8.1", "Lower lip outer middle": "8.2",
-        "Upper lip inner middle": "2.2", "Lower lip inner middle": "2.3",
-        "Inner left eyebrow": "4.1", "Inner right eyebrow": "4.2",
-        "Middle left eyebrow": "4.3", "Middle right eyebrow": "4.4",
-        "Outer left eyebrow": "4.5", "Outer right eyebrow": "4.6",
+        "Nose tip": "9.3",
+        "Left mouth corner": "8.3",
+        "Right mouth corner": "8.4",
+        "Outer left eye corner": "3.7",
+        "Inner right eye corner": "3.8",
+        "Inner left eye corner": "3.11",
+        "Outer right eye corner": "3.12",
+        "Chin middle": "2.10",
+        "Upper lip outer middle": "8.1",
+        "Lower lip outer middle": "8.2",
+        "Upper lip inner middle": "2.2",
+        "Lower lip inner middle": "2.3",
+        "Inner left eyebrow": "4.1",
+        "Inner right eyebrow": "4.2",
+        "Middle left eyebrow": "4.3",
+        "Middle right eyebrow": "4.4",
+        "Outer left eyebrow": "4.5",
+        "Outer right eyebrow": "4.6",
     }
     for k, v in expected.items():
         assert MPEG4_FDP[k] == v
@@ -197,7 +228,10 @@ def test_check_side_detects_mirrored_input():
         check_side(no_eyes.mirrored(swap_labels=False))
     # one eye pair swapped, the other not: inconsistent
     d = lm.to_dict()
-    d["Inner left eye corner"], d["Inner right eye corner"] = d["Inner right eye corner"], d["Inner left eye corner"]
+    d["Inner left eye corner"], d["Inner right eye corner"] = (
+        d["Inner right eye corner"],
+        d["Inner left eye corner"],
+    )
     with pytest.raises(LandmarkError, match="inconsistent"):
         check_side(Landmarks.from_dict(d))
     with pytest.raises(LandmarkError, match="cannot check"):
@@ -218,8 +252,10 @@ def test_lm3_round_trip(tmp_path):
 
 def test_lm3_variants_and_missing_landmarks(tmp_path):
     p = tmp_path / "v.lm3"
-    p.write_text("# comment\n#\n\n3 landmarks:\nNOSE TIP\n1 2 3\n\nleft earlobe\n4 5 6\n"
-                 "Chin middle\n7 8 9.5\n")
+    p.write_text(
+        "# comment\n#\n\n3 landmarks:\nNOSE TIP\n1 2 3\n\nleft earlobe\n4 5 6\n"
+        "Chin middle\n7 8 9.5\n"
+    )
     lm = read_lm3(p)
     assert lm.names == ("Nose tip", "Left ear lobe", "Chin middle")
     np.testing.assert_array_equal(lm["chin middle"], [7, 8, 9.5])
@@ -291,8 +327,9 @@ def test_real_landmarks_attach_to_truth_mesh(shared):
 def test_attach_to_mesh_and_far_landmarks():
     s = trimesh.creation.icosphere(subdivisions=3, radius=100.0)
     mesh = TriMesh(s.vertices, s.faces)
-    lm = Landmarks(["Nose tip", "Chin middle", "Left ear lobe"],
-                   [[0, 0, 101.0], [0, -99.0, 0], [150.0, 0, 0]])
+    lm = Landmarks(
+        ["Nose tip", "Chin middle", "Left ear lobe"], [[0, 0, 101.0], [0, -99.0, 0], [150.0, 0, 0]]
+    )
     sp, dist = lm.on_mesh(mesh)
     assert len(sp) == 3
     np.testing.assert_allclose(dist[:2], [1.0, 1.0], atol=0.3)

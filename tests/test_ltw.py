@@ -99,7 +99,12 @@ def one_spring(family, params):
     tis = eqx.tree_at(
         lambda q: (q.spring_i, q.spring_j, q.spring_rest, q.spring_family),
         tis,
-        (tis.spring_i[k : k + 1], tis.spring_j[k : k + 1], tis.spring_rest[k : k + 1], tis.spring_family[k : k + 1]),
+        (
+            tis.spring_i[k : k + 1],
+            tis.spring_j[k : k + 1],
+            tis.spring_rest[k : k + 1],
+            tis.spring_family[k : k + 1],
+        ),
     )
     mus = waters_for(tis, [], 1)
     return LTWModel(tis, mus, params, 1.0, 0.0), int(tis.spring_i[0]), int(tis.spring_j[0])
@@ -187,7 +192,9 @@ def test_prism_volume_and_gradient_against_analytic_and_autodiff():
     # rigid motions leave the volume unchanged
     c, s = np.cos(0.7), np.sin(0.7)
     R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
-    np.testing.assert_allclose(element_volume_grad(e0 @ R.T + 5.0)[0], element_volume_grad(e0)[0], rtol=1e-12)
+    np.testing.assert_allclose(
+        element_volume_grad(e0 @ R.T + 5.0)[0], element_volume_grad(e0)[0], rtol=1e-12
+    )
 
 
 @pytest.mark.parametrize("springs", [False, True])
@@ -197,8 +204,15 @@ def test_compressed_element_restores_its_volume(springs):
     if springs:
         prm = LTWParams()
     else:  # volume term alone
-        prm = LTWParams(c_epidermis=0, c_dermal_low=0, c_dermal_high=0, c_fascia=0, c_muscle_layer=0,
-                        k_shape=0, k_restore=0)
+        prm = LTWParams(
+            c_epidermis=0,
+            c_dermal_low=0,
+            c_dermal_high=0,
+            c_fascia=0,
+            c_muscle_layer=0,
+            k_shape=0,
+            k_restore=0,
+        )
     model = LTWModel(tis, waters_for(tis, [], 1), prm, 1.0, 0.0)
     V0 = float(element_volumes(tis.rest, tis)[0])
     x = tis.rest.at[:3, 2].add(-1.6)  # squash the epidermis 40 % into the 4 mm dermis
@@ -261,7 +275,9 @@ def test_theta_falloffs_values_and_c1_continuity():
     e = jnp.array([-0.5, 0.0, 0.8, 0.9, 1.0, 1.25, 2.0])
     np.testing.assert_allclose(theta1(e), [0, 0, 1, 1, 1, 0, 0], atol=1e-15)
     q = jnp.array([0.0, 0.25, 1.0, 4.0])
-    np.testing.assert_allclose(theta2(q), [1.0, 0.5 * (1 + np.cos(np.pi * 0.5)), 0.0, 0.0], atol=1e-15)
+    np.testing.assert_allclose(
+        theta2(q), [1.0, 0.5 * (1 + np.cos(np.pi * 0.5)), 0.0, 0.0], atol=1e-15
+    )
     d1 = jax.vmap(jax.grad(theta1))
     d2 = jax.vmap(jax.grad(theta2))
     for knot in (0.0, 0.8, 1.0, 1.25):
@@ -376,8 +392,11 @@ def test_gradients_match_finite_differences(jaw_patch, solver):
         assert float(got) == pytest.approx(want, rel=2e-5, abs=1e-7)
     assert abs(float(g[1])) > 1e-3 and abs(float(g[0][0])) > 1e-3  # not trivially zero
     if solver == "relax":  # forward mode along the jaw angle agrees with reverse mode
-        _, tang = jax.jvp(lambda th: _loss_j(model, wts, solver, args[0], th, args[2], args[3]),
-                          (args[1],), (jnp.asarray(1.0),))
+        _, tang = jax.jvp(
+            lambda th: _loss_j(model, wts, solver, args[0], th, args[2], args[3]),
+            (args[1],),
+            (jnp.asarray(1.0),),
+        )
         assert float(tang) == pytest.approx(float(g[1]), rel=1e-8)
 
 
@@ -389,7 +408,9 @@ def test_jaw_moves_the_mandible_columns_rigidly(jaw_patch):
     x = relax_j(model, jnp.zeros(2), R, t, 300)
     mand = np.asarray(tis.jaw_weight[2 * V :]) > 0.5
     skull_rest = np.asarray(tis.rest[2 * V :])
-    np.testing.assert_allclose(x[2 * V :][mand], skull_rest[mand] @ np.asarray(R).T + np.asarray(t), atol=1e-12)
+    np.testing.assert_allclose(
+        x[2 * V :][mand], skull_rest[mand] @ np.asarray(R).T + np.asarray(t), atol=1e-12
+    )
     np.testing.assert_allclose(x[2 * V :][~mand], skull_rest[~mand], atol=0)
     # the skin above the mandible follows it (within the tissue's compliance)
     moved = np.asarray(tis.rest[:V]) @ np.asarray(R).T + np.asarray(t)
@@ -414,7 +435,9 @@ def test_degenerate_triangles_and_zero_length_springs_stay_finite():
         m = eqx.tree_at(lambda q: q.params.k_volume, m, k)
         return jnp.sum(relax(m, a, I3, Z3, n_steps=60, block=20) ** 2)
 
-    val, g = eqx.filter_jit(jax.value_and_grad(run, argnums=(1, 2)))(model, jnp.ones(1), jnp.asarray(300.0))
+    val, g = eqx.filter_jit(jax.value_and_grad(run, argnums=(1, 2)))(
+        model, jnp.ones(1), jnp.asarray(300.0)
+    )
     assert bool(jnp.isfinite(val))
     assert all(bool(jnp.isfinite(gi).all()) for gi in g)
     # forces on exactly coincident nodes: finite values and gradients
@@ -427,10 +450,28 @@ def test_degenerate_triangles_and_zero_length_springs_stay_finite():
 def test_float32_inputs_stay_float32():
     v, t = grid(5, 3.0)
     tis = build_tissue(v, t, np.full(len(v), 8.0), dtype=jnp.float32)
-    mus = build_waters([linear_fibre([-9.0, 0.0, -7.0], [3.0, 0.0, -4.0], 5.0, 0)], np.asarray(tis.rest[25:50]),
-                       25 + np.arange(25), np.asarray(tis.skull_normals), 1, dtype=jnp.float32)
-    model = make_model(tis, mus, LTWParams(**{k: jnp.float32(getattr(LTWParams(), k)) for k in LTWParams.__dataclass_fields__}))
-    x = relax_j(model, jnp.ones(1, jnp.float32), jnp.eye(3, dtype=jnp.float32), jnp.zeros(3, jnp.float32), 100)
+    mus = build_waters(
+        [linear_fibre([-9.0, 0.0, -7.0], [3.0, 0.0, -4.0], 5.0, 0)],
+        np.asarray(tis.rest[25:50]),
+        25 + np.arange(25),
+        np.asarray(tis.skull_normals),
+        1,
+        dtype=jnp.float32,
+    )
+    model = make_model(
+        tis,
+        mus,
+        LTWParams(
+            **{k: jnp.float32(getattr(LTWParams(), k)) for k in LTWParams.__dataclass_fields__}
+        ),
+    )
+    x = relax_j(
+        model,
+        jnp.ones(1, jnp.float32),
+        jnp.eye(3, dtype=jnp.float32),
+        jnp.zeros(3, jnp.float32),
+        100,
+    )
     assert x.dtype == jnp.float32 and bool(jnp.isfinite(x).all())
 
 
@@ -456,4 +497,6 @@ def test_bad_inputs_raise_typed_errors():
     with pytest.raises(RigError, match="zero length"):
         waters_for(tis, [linear_fibre([0, 0, -5.0], [0, 0, -5.0], 3.0, 0)], 1)
     with pytest.raises(RigError, match="floating"):
-        make_model(tis, waters_for(tis, [], 1), LTWParams(k_shape=0.0, k_restore=0.0, c_muscle_layer=0.0))
+        make_model(
+            tis, waters_for(tis, [], 1), LTWParams(k_shape=0.0, k_restore=0.0, c_muscle_layer=0.0)
+        )

@@ -121,9 +121,7 @@ def test_bad_inputs(rig, face):
 
 
 def test_build_rig_dispatches_to_the_ltw_backend(face):
-    from jaxface.anatomy.rig import build_rig
-
-    from jaxface.anatomy.rig import synthesize
+    from jaxface.anatomy.rig import build_rig, synthesize
 
     r = build_rig(face[0], face[1], backend="ltw").with_iterations(20)
     assert isinstance(r, LTWRig) and r.backend == "ltw"

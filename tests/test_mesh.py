@@ -95,7 +95,9 @@ def test_tetrahedron_topology():
     # one ring: in a tetrahedron every vertex neighbours the other three
     indptr, indices = m.one_ring
     for i in range(4):
-        assert sorted(indices[indptr[i]:indptr[i + 1]].tolist()) == [j for j in range(4) if j != i]
+        assert sorted(indices[indptr[i] : indptr[i + 1]].tolist()) == [
+            j for j in range(4) if j != i
+        ]
     # face normals point outwards: away from the centroid
     cen = v.mean(axis=0)
     fc = v[t].mean(axis=1)
@@ -149,7 +151,7 @@ def test_one_ring_matches_brute_force():
     indptr, indices = m.one_ring
     assert indptr.shape == (len(v) + 1,)
     for i in range(len(v)):
-        got = indices[indptr[i]:indptr[i + 1]].tolist()
+        got = indices[indptr[i] : indptr[i + 1]].tolist()
         assert got == sorted(nbrs[i])
     # interior vertex of a regularly split grid has valence 6
     interior = 2 * 6 + 2
@@ -163,8 +165,13 @@ def test_cube_with_hole():
     assert closed.signed_volume() == pytest.approx(1.0)
     assert closed.edges.shape == (18, 2) and closed.edge_pairs.shape == (18, 4)
     # face normals: the six axis directions
-    expected = np.repeat(np.array([[0, 0, -1], [0, -1, 0], [1, 0, 0], [0, 1, 0], [-1, 0, 0],
-                                   [0, 0, 1]], dtype=float), 2, axis=0)
+    expected = np.repeat(
+        np.array(
+            [[0, 0, -1], [0, -1, 0], [1, 0, 0], [0, 1, 0], [-1, 0, 0], [0, 0, 1]], dtype=float
+        ),
+        2,
+        axis=0,
+    )
     np.testing.assert_allclose(closed.face_normals, expected, atol=1e-15)
     # vertex normals point into the corner's octant
     corner_dir = v - 0.5
@@ -199,12 +206,16 @@ def test_sphere_normals():
 def test_two_boundary_loops_annulus():
     # a flat ring: outer square 4x4 with a 2x2 hole -> two loops (8-ish each)
     v, t = grid(4, 4)
-    centre = [i for i, tri in enumerate(t) if np.all((v[tri, 0] >= 1) & (v[tri, 0] <= 3)
-                                                       & (v[tri, 1] >= 1) & (v[tri, 1] <= 3))]
+    centre = [
+        i
+        for i, tri in enumerate(t)
+        if np.all((v[tri, 0] >= 1) & (v[tri, 0] <= 3) & (v[tri, 1] >= 1) & (v[tri, 1] <= 3))
+    ]
     keep = np.setdiff1d(np.arange(len(t)), centre)
     m = TriMesh(v, t[keep])
     loops = m.boundary_loops
     assert [lp.size for lp in loops] == [16, 8]
+
     # outer loop counter-clockwise, inner loop clockwise seen from +z
     def area(lp):
         xy = v[lp, :2]
@@ -371,7 +382,7 @@ def test_geodesic_multiple_sources_and_components():
     d = m.geodesic_distance(src, normalise=False)
     assert d[0] == 0 and d[6] == 0
     assert d[3] == pytest.approx(3.0)  # middle of the row: 3 from either end
-    assert np.all(np.isinf(d[len(v):]))  # the second strip is not connected
+    assert np.all(np.isinf(d[len(v) :]))  # the second strip is not connected
     dn = m.geodesic_distance(np.isin(np.arange(len(v2)), src))
     assert np.nanmax(dn[np.isfinite(dn)]) == pytest.approx(1.0)
     with pytest.raises(MeshError):
@@ -392,8 +403,9 @@ def test_closest_point_barycentric_matches_trimesh():
     assert np.all(bary >= 0) and np.allclose(bary.sum(axis=1), 1)
     q = bary[:, :1] * a + bary[:, 1:2] * b + bary[:, 2:] * c
     ref = trimesh.triangles.closest_point(np.stack([a, b, c], axis=1), p)
-    np.testing.assert_allclose(np.linalg.norm(p - q, axis=1), np.linalg.norm(p - ref, axis=1),
-                               atol=1e-10)
+    np.testing.assert_allclose(
+        np.linalg.norm(p - q, axis=1), np.linalg.norm(p - ref, axis=1), atol=1e-10
+    )
     # degenerate triangle: no NaN
     z = np.zeros((1, 3))
     out = closest_point_barycentric(np.ones((1, 3)), z, z, z)
@@ -404,8 +416,9 @@ def test_closest_points_on_plane_and_sphere():
     v, t = grid(10, 10, 1.0)
     m = TriMesh(v, t)
     rng = np.random.default_rng(2)
-    p = np.column_stack([rng.uniform(0.5, 9.5, 50), rng.uniform(0.5, 9.5, 50),
-                         rng.uniform(-3, 3, 50)])
+    p = np.column_stack(
+        [rng.uniform(0.5, 9.5, 50), rng.uniform(0.5, 9.5, 50), rng.uniform(-3, 3, 50)]
+    )
     sp, dist = m.closest_points(p)
     np.testing.assert_allclose(dist, np.abs(p[:, 2]), atol=1e-12)
     pos = np.asarray(sp.positions(m.vertices, m.triangles))
@@ -510,7 +523,8 @@ def test_ray_cast_matches_trimesh_intersector():
     d[:20, :2] = 0.0  # axis-parallel rays exercise the bounding-box clipping
     every = m.ray_cast(o, d, all_hits=True)
     tri, ray, loc = RayMeshIntersector(trimesh.Trimesh(v, faces, process=False)).intersects_id(
-        o, d, multiple_hits=True, return_locations=True)
+        o, d, multiple_hits=True, return_locations=True
+    )
     du = d / np.linalg.norm(d, axis=1, keepdims=True)
     dist = np.einsum("ij,ij->i", loc - o[ray], du[ray])
     order = np.lexsort((dist, ray))
@@ -544,11 +558,14 @@ def test_round_trip_with_units(tmp_path, ext, units):
     back = load_mesh(path, units=units)
     np.testing.assert_array_equal(back.triangles, m.triangles)
     # PLY is float32 (relative 6e-8); OBJ 10 decimals
-    np.testing.assert_allclose(back.vertices, m.vertices, rtol=2e-7, atol=1e-9 * unit_scale(units) * 10)
+    np.testing.assert_allclose(
+        back.vertices, m.vertices, rtol=2e-7, atol=1e-9 * unit_scale(units) * 10
+    )
     # the file really is in the declared unit
     raw = trimesh.load(str(path), process=False, force="mesh")
-    np.testing.assert_allclose(np.ptp(raw.vertices[:, 1]) * unit_scale(units),
-                               np.ptp(m.vertices[:, 1]), rtol=1e-6)
+    np.testing.assert_allclose(
+        np.ptp(raw.vertices[:, 1]) * unit_scale(units), np.ptp(m.vertices[:, 1]), rtol=1e-6
+    )
 
 
 def test_save_vertices_and_triangles(tmp_path):
@@ -674,12 +691,15 @@ def test_truncated_and_corrupt_files(tmp_path):
     with pytest.raises(DataNotFoundError):
         load_mesh(tmp_path / "missing.obj")
     # a structurally bad mesh inside a well-formed file: named file + typed problem
-    (tmp_path / "nm.obj").write_text("v 0 0 0\nv 100 0 0\nv 0 100 0\nv 0 0 100\n"
-                                     "f 1 2 3\nf 1 2 4\nf 2 1 3\n")
+    (tmp_path / "nm.obj").write_text(
+        "v 0 0 0\nv 100 0 0\nv 0 100 0\nv 0 0 100\nf 1 2 3\nf 1 2 4\nf 2 1 3\n"
+    )
     with pytest.raises(MeshError) as info:
         load_mesh(tmp_path / "nm.obj")
     assert "nm.obj" in str(info.value) and info.value.problem in (
-        "inconsistent_orientation", "non_manifold_edges")
+        "inconsistent_orientation",
+        "non_manifold_edges",
+    )
 
 
 def test_units_errors(tmp_path):

@@ -36,16 +36,25 @@ def test_notebook_runs(path, tmp_path):
         os.environ["JAXFACE_SHARED"] = str(shared_root())
     os.environ.setdefault("MPLBACKEND", "Agg")
     try:
-        client = nbclient.NotebookClient(nb, timeout=CELL_TIMEOUT_S, kernel_name="python3",
-                                         resources={"metadata": {"path": str(path.parent)}})
+        client = nbclient.NotebookClient(
+            nb,
+            timeout=CELL_TIMEOUT_S,
+            kernel_name="python3",
+            resources={"metadata": {"path": str(path.parent)}},
+        )
         client.execute()
     finally:
         if env_before is None:
             os.environ.pop("JAXFACE_SHARED", None)
         else:
             os.environ["JAXFACE_SHARED"] = env_before
-    errors = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])
-              if o.get("output_type") == "error"]
+    errors = [
+        o
+        for c in nb.cells
+        if c.cell_type == "code"
+        for o in c.get("outputs", [])
+        if o.get("output_type") == "error"
+    ]
     assert not errors, errors
     # the executed copy, for inspection when something looks wrong
     nbformat.write(nb, tmp_path / path.name)

@@ -28,7 +28,9 @@ def test_closest_point_query_in_blocks_equals_one_block():
 
     mesh = generic_head().mesh
     rng = np.random.default_rng(0)
-    q = mesh.vertices[rng.integers(0, mesh.n_vertices, 5000)] + rng.normal(scale=2.0, size=(5000, 3))
+    q = mesh.vertices[rng.integers(0, mesh.n_vertices, 5000)] + rng.normal(
+        scale=2.0, size=(5000, 3)
+    )
     idx = SurfaceIndex(mesh.vertices, mesh.triangles)
     one = idx.query(q, chunk=10_000)
     blocks = idx.query(q, chunk=700)  # 8 blocks on the thread pool
@@ -46,8 +48,11 @@ def test_outer_jobs_may_use_the_inner_pool():
     mesh = generic_head().mesh
     idx = SurfaceIndex(mesh.vertices, mesh.triangles)
     rng = np.random.default_rng(1)
-    qs = [mesh.vertices[rng.integers(0, mesh.n_vertices, 3000)] + rng.normal(scale=1.0, size=(3000, 3))
-          for _ in range(5)]
+    qs = [
+        mesh.vertices[rng.integers(0, mesh.n_vertices, 3000)]
+        + rng.normal(scale=1.0, size=(3000, 3))
+        for _ in range(5)
+    ]
 
     def job(q):
         return idx.query(q, chunk=500).distances  # 6 inner blocks per job

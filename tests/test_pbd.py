@@ -86,8 +86,7 @@ def test_distance_alone_satisfied_and_center_of_mass_kept(scheme, iters):
     e, p = grid_topology(v, t)
     rng = np.random.default_rng(0)
     x0 = v + rng.normal(size=v.shape) * 0.3
-    S = pbd.build_system({"d": pbd.distance_constraints(np.concatenate([e, p[:, 2:]]), v)},
-                         len(v))
+    S = pbd.build_system({"d": pbd.distance_constraints(np.concatenate([e, p[:, 2:]]), v)}, len(v))
     x = pbd.relax(S, jnp.asarray(x0), iterations=iters, scheme=scheme)
     assert float(S.max_violation(x)["d"]) < TOL
     # rest lengths measured independently
@@ -112,8 +111,11 @@ def _check_hinge_inert_then_active(x, y, rest, active_angle):
     reverse pass finite and equal to that of the identity, d sum(x^2) / dx = 2 x); at ``y``
     it is active (|C| > ``active_angle`` rad) with a finite reverse pass."""
     S = pbd.build_system({"b": pbd.bending_constraints([[0, 1, 2, 3]], rest=[rest])}, 4)
-    c = lambda p: float(pbd.bending_constraints([[0, 1, 2, 3]], rest=[rest]).terms(  # noqa: E731
-        [jnp.asarray(p[k][:, None]) for k in range(4)])[0][0])
+    c = lambda p: float(
+        pbd.bending_constraints([[0, 1, 2, 3]], rest=[rest]).terms(  # noqa: E731
+            [jnp.asarray(p[k][:, None]) for k in range(4)]
+        )[0][0]
+    )
     f = lambda p: jnp.sum(pbd.project(S, p, iterations=2) ** 2)  # noqa: E731
     assert c(x) == 0.0
     g = np.asarray(jax.grad(f)(jnp.asarray(x)))
@@ -131,8 +133,15 @@ def test_a_collapsed_hinge_is_inert_and_its_reverse_pass_stays_finite_in_float32
     its projection finite (with the old absolute eps^2 threshold it was active, folded at
     2.9 rad against a rest of 0, and its squared gradients of ~2e7 / mm overflowed into NaN).
     The same wings about a 1 mm edge: an active constraint with a finite reverse pass."""
-    x = np.array([[-2.7e-7, -40.896, 103.086], [1.7e-7, -40.896, 103.086],
-                  [-4.945, -40.389, 102.477], [6.821, -40.298, 101.865]], np.float32)
+    x = np.array(
+        [
+            [-2.7e-7, -40.896, 103.086],
+            [1.7e-7, -40.896, 103.086],
+            [-4.945, -40.389, 102.477],
+            [6.821, -40.298, 101.865],
+        ],
+        np.float32,
+    )
     y = x.copy()
     y[0, 0], y[1, 0] = -0.5, 0.5
     _check_hinge_inert_then_active(x, y, 0.0, 1.0)
@@ -146,7 +155,9 @@ def test_a_hinge_with_a_collapsed_wing_is_inert_and_its_reverse_pass_stays_finit
     finite. Judged by the edge and the normals alone it was active, and the default head's
     float32 reverse pass through the rig at rest came out NaN once the modiolus moved to the
     mouth corner. The wing 1 mm out: active, finite."""
-    x = np.array([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0], [6e-8, -8e-8, 3e-8], [2.5, 3.0, 1.0]], np.float32)
+    x = np.array(
+        [[0.0, 0.0, 0.0], [5.0, 0.0, 0.0], [6e-8, -8e-8, 3e-8], [2.5, 3.0, 1.0]], np.float32
+    )
     y = x.copy()
     y[2] = [0.3, -0.8, 0.5]
     _check_hinge_inert_then_active(x, y, 0.4, 0.1)
@@ -157,7 +168,7 @@ def test_a_hinge_degenerate_at_rest_gets_no_stiffness():
     a wing along the edge's line) has no rest angle and is kept inert (stiffness 0); the
     others keep the given stiffness."""
     v = hinge(0.7)
-    v = np.vstack([v, v[0] + [1e-9, 0, 0], v[0] + [1.0, 0, 0]])   # 4: on a; 5: on the edge line
+    v = np.vstack([v, v[0] + [1e-9, 0, 0], v[0] + [1.0, 0, 0]])  # 4: on a; 5: on the edge line
     rows = [[0, 1, 2, 3], [0, 4, 2, 3], [0, 1, 2, 5]]
     g = pbd.bending_constraints(rows, v, stiffness=0.6)
     np.testing.assert_array_equal(np.asarray(g.stiffness), [0.6, 0.0, 0.0])
@@ -208,8 +219,10 @@ def test_volume_inflates_dodecahedron_to_target():
     # with a compliant (XPBD) stretch network holding the shape, the hard volume still reaches
     # its target exactly (its multiplier converges to C = 0)
     e = grid_topology(v, t)[0]
-    groups = {"stretch": pbd.distance_constraints(e, v, compliance=1e-4),
-              "volume": pbd.volume_constraint(t, v, compliance=0.0)}
+    groups = {
+        "stretch": pbd.distance_constraints(e, v, compliance=1e-4),
+        "volume": pbd.volume_constraint(t, v, compliance=0.0),
+    }
     S = pbd.build_system(groups, len(v))
     x = jnp.asarray(v)
     for target in (1.5 * V0, 2.0 * V0):
@@ -239,9 +252,13 @@ def test_particle_inside_convex_hull_ends_on_face_of_least_penetration():
     cube = np.array([[x, y, z] for x in (-5, 5) for y in (-5, 5) for z in (-5, 5)], float)
     N, d = pbd.hull_planes(cube)
     assert N.shape == (6, 3)
-    pts = np.array([[4.0, 0.5, -1.0],   # nearest face +x (1 mm deep)
-                    [0.2, -0.3, -4.5],  # nearest face -z
-                    [7.0, 0.0, 0.0]])   # outside: untouched
+    pts = np.array(
+        [
+            [4.0, 0.5, -1.0],  # nearest face +x (1 mm deep)
+            [0.2, -0.3, -4.5],  # nearest face -z
+            [7.0, 0.0, 0.0],
+        ]
+    )  # outside: untouched
     S = pbd.build_system({"teeth": pbd.hull_constraints([0, 1, 2], N, d)}, 3)
     x = np.asarray(pbd.relax(S, jnp.asarray(pts), iterations=1))
     np.testing.assert_allclose(x[0], [5.0, 0.5, -1.0], atol=1e-12)
@@ -254,8 +271,9 @@ def test_particle_inside_convex_hull_ends_on_face_of_least_penetration():
     Nb, db = pbd.hull_planes(box)
     Sb = pbd.build_system({"teeth": pbd.hull_constraints([0], Nb, db)}, 1)
     q = jnp.asarray([[1.5, 0.3, 1.0]])
-    np.testing.assert_allclose(np.asarray(pbd.relax(Sb, q, iterations=1)), [[1.5, 2.0, 1.0]],
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        np.asarray(pbd.relax(Sb, q, iterations=1)), [[1.5, 2.0, 1.0]], atol=1e-12
+    )
     R = np.array([[0.0, -1.0, 0], [1.0, 0.0, 0], [0, 0, 1.0]])
     N2, d2 = pbd.transform_planes(Nb, db, R, np.array([0.0, 0.0, 1.0]))
     S2 = Sb.set("teeth", normals=N2, offsets=d2)
@@ -265,8 +283,7 @@ def test_particle_inside_convex_hull_ends_on_face_of_least_penetration():
 
 
 def test_halfspace_pushes_out_only_violating_particles():
-    S = pbd.build_system(
-        {"floor": pbd.halfspace_constraints([0, 1], [0, 2.0, 0], [-1.0, -1.0])}, 2)
+    S = pbd.build_system({"floor": pbd.halfspace_constraints([0, 1], [0, 2.0, 0], [-1.0, -1.0])}, 2)
     x = np.asarray(pbd.relax(S, jnp.asarray([[0.3, -3.0, 1.0], [0.0, 2.0, 0.0]]), iterations=1))
     np.testing.assert_allclose(x, [[0.3, -1.0, 1.0], [0.0, 2.0, 0.0]], atol=1e-12)
 
@@ -351,8 +368,12 @@ def test_xpbd_equilibrium_independent_of_iterations_and_matches_analytic():
     np.testing.assert_allclose(ext, alpha * g * np.arange(4, 0, -1), rtol=1e-6)
     # plain PBD with k < 1: the sag depends on the iteration count (what XPBD fixes)
     Sk, _ = _chain(stiffness=0.01)
-    sag = [np.asarray(pbd.simulate(Sk, p, steps=400, iterations=it,
-                                   gravity=jnp.array([0, -g, 0])).x)[-1, 1] for it in (20, 200)]
+    sag = [
+        np.asarray(pbd.simulate(Sk, p, steps=400, iterations=it, gravity=jnp.array([0, -g, 0])).x)[
+            -1, 1
+        ]
+        for it in (20, 200)
+    ]
     assert abs(sag[0] - sag[1]) > 0.01
 
 
@@ -373,8 +394,9 @@ def _mixed_system():
         "bend": pbd.bending_constraints(p, v, stiffness=0.6),
         "area": pbd.area_constraints(t, v, stiffness=0.9, compliance=1e-6),
         "volume": pbd.volume_constraint(t, v, rest=1.2 * volume(v, t)),
-        "anchors": pbd.anchor_constraints(sel, v[sel] + rng.normal(size=(4, 3)), stiffness=0.3,
-                                          compliance=1e-8),
+        "anchors": pbd.anchor_constraints(
+            sel, v[sel] + rng.normal(size=(4, 3)), stiffness=0.3, compliance=1e-8
+        ),
         "hull": pbd.hull_constraints(np.arange(len(v)), N, d),
         "floor": pbd.halfspace_constraints(np.arange(len(v)), [0, 1, 0], -6.0),
     }
@@ -393,16 +415,24 @@ def test_coloured_gauss_seidel_is_the_sequential_sweep_in_colour_order():
     # the user's order is a different (valid) sweep: results differ, so the test can fail
     assert np.abs(ref.solve(S, x0, iterations=4, order="user") - xr).max() > 1e-3
     # both time-step the same way
-    vj = pbd.step(S, pbd.Particles.at_rest(jnp.asarray(x0)), iterations=3,
-                  gravity=jnp.array([0.0, -9810.0, 0.0]))
-    xs, vs = ref.step(S, x0, np.zeros_like(x0), iterations=3, gravity=[0, -9810.0, 0],
-                      order="color")
+    vj = pbd.step(
+        S,
+        pbd.Particles.at_rest(jnp.asarray(x0)),
+        iterations=3,
+        gravity=jnp.array([0.0, -9810.0, 0.0]),
+    )
+    xs, vs = ref.step(
+        S, x0, np.zeros_like(x0), iterations=3, gravity=[0, -9810.0, 0], order="color"
+    )
     np.testing.assert_allclose(np.asarray(vj.x), xs, atol=1e-10)
     np.testing.assert_allclose(np.asarray(vj.v), vs, atol=1e-6)
     # constraint values: JAX kernels vs the scalar formulas of the reference
     for name in S.names:
-        np.testing.assert_allclose(np.asarray(S[name].values(jnp.asarray(x0))),
-                                   ref.constraint_values(S[name], x0), atol=1e-9)
+        np.testing.assert_allclose(
+            np.asarray(S[name].values(jnp.asarray(x0))),
+            ref.constraint_values(S[name], x0),
+            atol=1e-9,
+        )
 
 
 def test_schemes_and_reference_reach_the_same_equilibrium():
@@ -415,16 +445,20 @@ def test_schemes_and_reference_reach_the_same_equilibrium():
     R = np.array([[np.cos(th), 0, np.sin(th)], [0, 1, 0], [-np.sin(th), 0, np.cos(th)]])
     goal = v @ R.T + [1.0, 2.0, -0.5]
     sel = np.array([0, 5, 14, 21, 30, 35])
-    groups = {"stretch": pbd.distance_constraints(np.concatenate([e, p[:, 2:]]), v),
-              "bend": pbd.bending_constraints(p, v, stiffness=0.5),
-              "area": pbd.area_constraints(t, v, stiffness=0.5),
-              "anchors": pbd.anchor_constraints(sel, goal[sel])}
+    groups = {
+        "stretch": pbd.distance_constraints(np.concatenate([e, p[:, 2:]]), v),
+        "bend": pbd.bending_constraints(p, v, stiffness=0.5),
+        "area": pbd.area_constraints(t, v, stiffness=0.5),
+        "anchors": pbd.anchor_constraints(sel, goal[sel]),
+    }
     S = pbd.build_system(groups, len(v))
     rng = np.random.default_rng(7)
     x0 = goal + rng.normal(size=v.shape) * 0.3
-    out = {"gs": np.asarray(pbd.relax(S, jnp.asarray(x0), iterations=300)),
-           "jacobi": np.asarray(pbd.relax(S, jnp.asarray(x0), iterations=3000, scheme="jacobi")),
-           "reference": ref.solve(S, x0, iterations=300)}
+    out = {
+        "gs": np.asarray(pbd.relax(S, jnp.asarray(x0), iterations=300)),
+        "jacobi": np.asarray(pbd.relax(S, jnp.asarray(x0), iterations=3000, scheme="jacobi")),
+        "reference": ref.solve(S, x0, iterations=300),
+    }
     for name, x in out.items():
         assert np.abs(x - goal).max() < 1e-3, (name, np.abs(x - goal).max())
 
@@ -435,17 +469,23 @@ def test_schemes_and_reference_reach_the_same_equilibrium():
 
 
 def _degenerate_system():
-    x = np.array([
-        [0.0, 0, 0], [0.0, 0, 0],          # 0, 1 coincident (zero-length edge)
-        [1.0, 0, 0], [2.0, 0, 0],          # 0-2-3 collinear: zero-area triangle
-        [1.0, 1.0, 0], [1.0, -1.0, 0],     # flat hinge about 0-2 with 4 and 5
-        [1.0, 1.0, 0],                     # 6 == 4: hinge 0-2 folded flat onto itself (pi)
-    ])
+    x = np.array(
+        [
+            [0.0, 0, 0],
+            [0.0, 0, 0],  # 0, 1 coincident (zero-length edge)
+            [1.0, 0, 0],
+            [2.0, 0, 0],  # 0-2-3 collinear: zero-area triangle
+            [1.0, 1.0, 0],
+            [1.0, -1.0, 0],  # flat hinge about 0-2 with 4 and 5
+            [1.0, 1.0, 0],  # 6 == 4: hinge 0-2 folded flat onto itself (pi)
+        ]
+    )
     groups = {
         "d": pbd.distance_constraints([[0, 1], [0, 2], [2, 3]], rest=[1.0, 1.0, 1.0]),
         "a": pbd.area_constraints([[0, 2, 3], [0, 1, 4], [0, 2, 4]], rest=[0.5, 0.5, 0.5]),
-        "b": pbd.bending_constraints([[0, 2, 4, 5], [0, 2, 4, 6], [0, 1, 4, 5], [0, 2, 3, 4]],
-                                     rest=[0.3, 0.3, 0.3, 0.3]),
+        "b": pbd.bending_constraints(
+            [[0, 2, 4, 5], [0, 2, 4, 6], [0, 1, 4, 5], [0, 2, 3, 4]], rest=[0.3, 0.3, 0.3, 0.3]
+        ),
         "v": pbd.volume_constraint([[0, 1, 2], [0, 2, 4]], rest=1.0, origin=[0, 0, 0]),
         "an": pbd.anchor_constraints([1], [[0.0, 0, 0]], compliance=1e-6),
     }
@@ -468,8 +508,9 @@ def test_degenerate_geometry_gives_no_nan_in_values_or_gradients(scheme):
     grads = jax.grad(loss, argnums=(0, 1, 2))(xj, jnp.ones(3), jnp.full(4, 0.5))
     for gr in grads:
         assert np.all(np.isfinite(np.asarray(gr)))
-    tang = jax.jvp(lambda x: pbd.relax(S, x, iterations=5, scheme=scheme), (xj,),
-                   (jnp.ones_like(xj),))[1]
+    tang = jax.jvp(
+        lambda x: pbd.relax(S, x, iterations=5, scheme=scheme), (xj,), (jnp.ones_like(xj),)
+    )[1]
     assert np.all(np.isfinite(np.asarray(tang)))
 
 

@@ -7,9 +7,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from test_pbd import grid, grid_topology
 
 from jaxface import pbd
+from test_pbd import grid, grid_topology
 
 ITERS = 60
 
@@ -65,17 +65,24 @@ def test_gradients_match_central_differences(cloth, scheme):
 
     @jax.jit
     def f(q):
-        s = (S.set("anchors", target=q["target"]).set("stretch", stiffness=q["k"])
-             .set("bend", rest=q["rest"]).set("cross", compliance=jnp.exp(q["log_c"])))
+        s = (
+            S.set("anchors", target=q["target"])
+            .set("stretch", stiffness=q["k"])
+            .set("bend", rest=q["rest"])
+            .set("cross", compliance=jnp.exp(q["log_c"]))
+        )
         return jnp.sum(wts * pbd.relax(s, q["x"], iterations=ITERS, scheme=scheme))
 
     g = jax.jit(jax.grad(f))(params)
     rng = np.random.default_rng(1)
-    dirs = [jax.tree.map(lambda a: jnp.asarray(rng.normal(size=a.shape)), params)
-            for _ in range(2)]
+    dirs = [jax.tree.map(lambda a: jnp.asarray(rng.normal(size=a.shape)), params) for _ in range(2)]
     for name in params:  # each block alone, so a wrong block cannot hide behind the others
-        dirs.append({k: (jnp.asarray(rng.normal(size=a.shape)) if k == name else jnp.zeros_like(a))
-                     for k, a in params.items()})
+        dirs.append(
+            {
+                k: (jnp.asarray(rng.normal(size=a.shape)) if k == name else jnp.zeros_like(a))
+                for k, a in params.items()
+            }
+        )
     h = 1e-6
     for d in dirs:
         fp = f(jax.tree.map(lambda a, b: a + h * b, params, d))
@@ -91,8 +98,9 @@ def test_forward_mode_equals_reverse_mode_and_checkpointing_is_exact(cloth):
     t0 = S["anchors"].target[S["anchors"].inv_perm]
 
     def out(t, ck=1):
-        return pbd.relax(S.set("anchors", target=t), x0, iterations=ITERS,
-                         checkpoint_every=ck)[jnp.array([1, 6, 10])]
+        return pbd.relax(S.set("anchors", target=t), x0, iterations=ITERS, checkpoint_every=ck)[
+            jnp.array([1, 6, 10])
+        ]
 
     jf = jax.jacfwd(out)(t0)
     jr = jax.jacrev(out)(t0)
@@ -103,8 +111,9 @@ def test_forward_mode_equals_reverse_mode_and_checkpointing_is_exact(cloth):
 
     g_ref = jax.grad(loss)(x0, None)
     for ck in (7,):  # 60 = 8 blocks of 7 + a remainder block of 4
-        np.testing.assert_allclose(np.asarray(jax.grad(loss)(x0, ck)), np.asarray(g_ref),
-                                   atol=1e-12)
+        np.testing.assert_allclose(
+            np.asarray(jax.grad(loss)(x0, ck)), np.asarray(g_ref), atol=1e-12
+        )
 
 
 def test_gradient_through_time_steps(cloth):
@@ -112,8 +121,10 @@ def test_gradient_through_time_steps(cloth):
 
     def loss(x):
         p = pbd.Particles.at_rest(x)
-        return jnp.sum(wts * pbd.simulate(S, p, steps=6, iterations=10,
-                                          gravity=jnp.array([0.0, -9810.0, 0.0])).x)
+        return jnp.sum(
+            wts
+            * pbd.simulate(S, p, steps=6, iterations=10, gravity=jnp.array([0.0, -9810.0, 0.0])).x
+        )
 
     _fd_check(jax.jit(loss), x0, _dirs(x0.shape, n=2, seed=6))
 

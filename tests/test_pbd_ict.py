@@ -34,8 +34,9 @@ def test_parallel_gauss_seidel_equals_sequential_reference_on_face(face):
     x = face.vertices
     groups = pbd.skin_constraints(face, origin=x.mean(0) - [0.0, 0.0, 60.0])
     sel = rng.choice(face.n_vertices, face.n_vertices // 10, replace=False)
-    groups["anchors"] = pbd.anchor_constraints(sel, x[sel] + rng.normal(size=(len(sel), 3)),
-                                               stiffness=0.2)
+    groups["anchors"] = pbd.anchor_constraints(
+        sel, x[sel] + rng.normal(size=(len(sel), 3)), stiffness=0.2
+    )
     S = pbd.build_system(groups, face.n_vertices)
     assert sum(S[n].size for n in ("stretch", "cross")) > 55_000
     xj = np.asarray(pbd.relax(S, jnp.asarray(x), iterations=2))

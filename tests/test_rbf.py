@@ -152,7 +152,9 @@ def test_gradients_match_finite_differences(kernel):
     for j, fd in ((jp, fd_p), (js, fd_s), (jd, fd_d)):
         assert np.all(np.isfinite(np.asarray(j)))
         np.testing.assert_allclose(np.asarray(j), fd, atol=2e-6 * (1 + np.abs(fd).max()))
-    np.testing.assert_allclose(np.asarray(jvp), np.einsum("mikj,kj->mi", np.asarray(js), t), atol=1e-8)
+    np.testing.assert_allclose(
+        np.asarray(jvp), np.einsum("mikj,kj->mi", np.asarray(js), t), atol=1e-8
+    )
     assert np.all(np.isfinite(np.asarray(tied)))
 
 
@@ -173,7 +175,9 @@ def test_fit_under_jit_and_vmap():
     src, dst = _cloud(15, seed=13)
     x = src[:5] + 1.0
     f = jax.jit(lambda s, d: rbf.fit(s, d, "biharmonic")(x))
-    np.testing.assert_allclose(np.asarray(f(src, dst)), np.asarray(rbf.fit(src, dst, "biharmonic")(x)))
+    np.testing.assert_allclose(
+        np.asarray(f(src, dst)), np.asarray(rbf.fit(src, dst, "biharmonic")(x))
+    )
     dsts = np.stack([dst, dst + 1.0])
     out = jax.vmap(lambda d: rbf.fit(src, d, "tps")(x))(jnp.asarray(dsts))
     np.testing.assert_allclose(np.asarray(out[1] - out[0]), np.ones((5, 3)), atol=1e-9)

@@ -12,7 +12,6 @@ from jaxface.errors import MeshError
 from jaxface.mesh import TriMesh
 from jaxface.surface import SurfacePoints, face_normals, from_points, safe_normalize, vertex_normals
 
-
 # jit whole evaluations: one compilation each instead of many eager op dispatches
 _pos = jax.jit(lambda sp, v, t: sp.positions(v, t))
 _nrm = jax.jit(lambda sp, v, t: sp.normals(v, t))
@@ -42,10 +41,12 @@ def test_points_follow_a_rigidly_moved_triangle():
         r, t = rotation(rng), rng.normal(size=3) * 50
         vm = v @ r.T + t
         np.testing.assert_allclose(np.asarray(_pos(sp, vm, tri)), p0 @ r.T + t, atol=1e-12)
-        np.testing.assert_allclose(np.asarray(_nrm(sp, vm, tri)), np.tile(r[:, 2], (25, 1)),
-                                   atol=1e-12)
-        np.testing.assert_allclose(np.asarray(_fnrm(sp, vm, tri)), np.tile(r[:, 2], (25, 1)),
-                                   atol=1e-12)
+        np.testing.assert_allclose(
+            np.asarray(_nrm(sp, vm, tri)), np.tile(r[:, 2], (25, 1)), atol=1e-12
+        )
+        np.testing.assert_allclose(
+            np.asarray(_fnrm(sp, vm, tri)), np.tile(r[:, 2], (25, 1)), atol=1e-12
+        )
 
 
 def test_corners_and_interpolated_normals_on_sphere():
@@ -77,7 +78,9 @@ def test_jax_vertex_normals_match_numpy_trimesh():
     np.testing.assert_allclose(np.asarray(fn), m.face_normals, atol=1e-12)
     # independent reference: area weighting = sum of unnormalised cross products
     ref = np.zeros_like(v)
-    c = np.cross(v[m.triangles[:, 1]] - v[m.triangles[:, 0]], v[m.triangles[:, 2]] - v[m.triangles[:, 0]])
+    c = np.cross(
+        v[m.triangles[:, 1]] - v[m.triangles[:, 0]], v[m.triangles[:, 2]] - v[m.triangles[:, 0]]
+    )
     for f, tri in enumerate(m.triangles):
         for i in tri:
             ref[i] += c[f]
@@ -100,11 +103,24 @@ def test_jacobians_match_central_finite_differences():
     assert jnp.zeros(1).dtype == jnp.float64  # conftest enables x64
     rng = np.random.default_rng(3)
     # a small curved patch: 2x2 grid with a raised centre
-    v = np.array([[0, 0, 0], [10, 0, 1], [20, 0, 0], [0, 10, 2], [10, 10, 5], [20, 10, 1],
-                  [0, 20, 0], [10, 20, 1], [20, 20, 0]], dtype=float)
+    v = np.array(
+        [
+            [0, 0, 0],
+            [10, 0, 1],
+            [20, 0, 0],
+            [0, 10, 2],
+            [10, 10, 5],
+            [20, 10, 1],
+            [0, 20, 0],
+            [10, 20, 1],
+            [20, 20, 0],
+        ],
+        dtype=float,
+    )
     v = v + rng.normal(size=v.shape) * 0.5
-    t = np.array([[0, 1, 4], [0, 4, 3], [1, 2, 5], [1, 5, 4], [3, 4, 7], [3, 7, 6],
-                  [4, 5, 8], [4, 8, 7]])
+    t = np.array(
+        [[0, 1, 4], [0, 4, 3], [1, 2, 5], [1, 5, 4], [3, 4, 7], [3, 7, 6], [4, 5, 8], [4, 8, 7]]
+    )
     tri = rng.integers(0, len(t), 6)
     bary = random_bary(rng, 6)
 
@@ -138,8 +154,11 @@ def test_nan_safe_normals_for_degenerate_geometry():
     sp = SurfacePoints([1, 0], [[0.3, 0.3, 0.4], [0.2, 0.3, 0.5]])
 
     def loss(x):
-        return (jnp.sum(sp.normals(x, t) ** 2) + jnp.sum(vertex_normals(x, t))
-                + jnp.sum(face_normals(x, t)))
+        return (
+            jnp.sum(sp.normals(x, t) ** 2)
+            + jnp.sum(vertex_normals(x, t))
+            + jnp.sum(face_normals(x, t))
+        )
 
     @jax.jit
     def evaluate(x):
@@ -215,5 +234,6 @@ def test_from_points_projects_onto_the_mesh():
     # points of the mesh itself project onto themselves with distance 0
     sp0, d0 = m.closest_points(m.vertices[:20])
     assert d0.max() < 1e-12
-    np.testing.assert_allclose(np.asarray(_pos(sp0, m.vertices, m.triangles)),
-                               m.vertices[:20], atol=1e-12)
+    np.testing.assert_allclose(
+        np.asarray(_pos(sp0, m.vertices, m.triangles)), m.vertices[:20], atol=1e-12
+    )

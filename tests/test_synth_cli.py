@@ -7,16 +7,30 @@ import json
 
 import numpy as np
 import pytest
-from test_cli_commands import run_cli, run_main
 
 from jaxface.cli import EXIT_USAGE
+from test_cli_commands import run_cli, run_main
 
 
 @pytest.fixture(scope="module")
 def synth_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("synth")
-    proc = run_cli("synth", "--au", "AU26=0.5", "--muscle", "zygomaticus_major_L=0.8",
-                   "--name", "custom", "--emotion", "surprise", "--sweeps", "48/6", "--out", out, timeout=600)
+    proc = run_cli(
+        "synth",
+        "--au",
+        "AU26=0.5",
+        "--muscle",
+        "zygomaticus_major_L=0.8",
+        "--name",
+        "custom",
+        "--emotion",
+        "surprise",
+        "--sweeps",
+        "48/6",
+        "--out",
+        out,
+        timeout=600,
+    )
     return out, proc
 
 
@@ -49,7 +63,9 @@ def test_synth_writes_meshes_landmarks_json_and_pictures(synth_run):
         rig = build_rig(head).with_iterations(muscles=48, skin=6)  # --sweeps 48/6
         a, jaw, puff = aus_to_controls({"AU26": 0.5}, rig.muscle_names)
         a[list(rig.muscle_names).index("zygomaticus_major_L")] = 0.8
-        x = np.asarray(synthesize(rig, a, JawPose(jaw.pitch_deg, jaw.yaw_deg, jaw.protrusion_mm), puff))
+        x = np.asarray(
+            synthesize(rig, a, JawPose(jaw.pitch_deg, jaw.yaw_deg, jaw.protrusion_mm), puff)
+        )
     m = load_mesh(out / "custom.ply", validate=False)
     np.testing.assert_array_equal(m.triangles, np.asarray(rig.triangles))
     np.testing.assert_allclose(m.vertices, x, atol=1e-3)  # PLY stores float32
@@ -72,16 +88,32 @@ def test_synth_bad_inputs(tmp_path, capsys):
     assert code == EXIT_USAGE and "nothing to synthesise" in err
     code, err = run_main(capsys, "synth", "--au", "AU12=3", "--out", tmp_path / "c")
     assert code == EXIT_USAGE and "[0, 1]" in err
-    code, err = run_main(capsys, "synth", "--au", "AU12", "--backend", "fem", "--out", tmp_path / "d")
+    code, err = run_main(
+        capsys, "synth", "--au", "AU12", "--backend", "fem", "--out", tmp_path / "d"
+    )
     assert code == EXIT_USAGE and "pbd" in err
     code, err = run_main(capsys, "synth", "--au", "AU12", "--sweeps", "64", "--out", tmp_path / "e")
     assert code == EXIT_USAGE and "MUSCLE/SKIN" in err
-    code, err = run_main(capsys, "synth", "--au", "AU12", "--sweeps", "0/8", "--out", tmp_path / "f")
+    code, err = run_main(
+        capsys, "synth", "--au", "AU12", "--sweeps", "0/8", "--out", tmp_path / "f"
+    )
     assert code == EXIT_USAGE and "at least 1" in err
-    code, err = run_main(capsys, "synth", "--au", "AU12", "--sweeps", "64/8", "--backend", "ltw",
-                         "--out", tmp_path / "g")
+    code, err = run_main(
+        capsys,
+        "synth",
+        "--au",
+        "AU12",
+        "--sweeps",
+        "64/8",
+        "--backend",
+        "ltw",
+        "--out",
+        tmp_path / "g",
+    )
     assert code == EXIT_USAGE and "ltw" in err
-    code, err = run_main(capsys, "synth", "--au", "AU12", "--sweeps", "64/8/1.5", "--out", tmp_path / "h")
+    code, err = run_main(
+        capsys, "synth", "--au", "AU12", "--sweeps", "64/8/1.5", "--out", tmp_path / "h"
+    )
     assert code == EXIT_USAGE and "[0, 1)" in err
     assert not any((tmp_path / s).exists() for s in "abcdefgh")
 
@@ -106,7 +138,9 @@ def test_parse_muscles_names_the_controls():
 
     names = ("zygomaticus_major_L", "zygomaticus_major_R")
     assert parse_muscles(["zygomaticus_major_L=0.25", "zygomaticus_major_R"], names) == {
-        "zygomaticus_major_L": 0.25, "zygomaticus_major_R": 1.0}
+        "zygomaticus_major_L": 0.25,
+        "zygomaticus_major_R": 1.0,
+    }
     with pytest.raises(RigError, match="unknown control 'smile'.*zygomaticus_major_L"):
         parse_muscles(["smile=0.5"], names)
     with pytest.raises(RigError, match=r"\[0, 1\]"):
@@ -118,8 +152,20 @@ def test_parse_muscles_names_the_controls():
 def test_synth_ltw_backend(tmp_path):
     """The same command drives the Lee-Terzopoulos-Waters backend (issue 6)."""
     out = tmp_path / "ltw"
-    proc = run_cli("synth", "--backend", "ltw", "--au", "AU12=0.8", "--name", "smile", "--no-pictures",
-                   "--compare-backends", "--out", out, timeout=900)
+    proc = run_cli(
+        "synth",
+        "--backend",
+        "ltw",
+        "--au",
+        "AU12=0.8",
+        "--name",
+        "smile",
+        "--no-pictures",
+        "--compare-backends",
+        "--out",
+        out,
+        timeout=900,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     doc = json.loads((out / "smile.json").read_text())
     assert doc["backend"] == "ltw" and not (out / "smile.png").exists()

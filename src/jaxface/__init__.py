@@ -43,8 +43,24 @@ _LAZY = {
     "JawPose": "jaxface.anatomy",
 }
 _SUBMODULES = {
-    "rbf", "pbd", "reference", "mesh", "surface", "landmarks", "errors", "testing", "head", "render",
-    "io", "erdogdu", "clone", "contours", "anatomy", "facs", "fit", "ltw",
+    "rbf",
+    "pbd",
+    "reference",
+    "mesh",
+    "surface",
+    "landmarks",
+    "errors",
+    "testing",
+    "head",
+    "render",
+    "io",
+    "erdogdu",
+    "clone",
+    "contours",
+    "anatomy",
+    "facs",
+    "fit",
+    "ltw",
 }
 
 __all__ = sorted(set(_LAZY) | _SUBMODULES | {"__version__"})

@@ -16,7 +16,8 @@ from __future__ import annotations
 import functools
 import os
 import threading
-from typing import Callable, Iterable, TypeVar
+from collections.abc import Callable, Iterable
+from typing import TypeVar
 
 __all__ = ["thread_map", "n_workers"]
 

@@ -30,7 +30,6 @@ import os
 import sys
 import time
 from pathlib import Path
-from typing import Optional
 
 import typer
 from rich.console import Console
@@ -38,8 +37,18 @@ from rich.table import Table
 
 from . import __version__
 
-__all__ = ["app", "main", "handle_errors", "console", "EXIT_OK", "EXIT_ERROR", "EXIT_USAGE",
-           "EXIT_MISSING", "COMMAND_MODULES", "status_steps"]
+__all__ = [
+    "app",
+    "main",
+    "handle_errors",
+    "console",
+    "EXIT_OK",
+    "EXIT_ERROR",
+    "EXIT_USAGE",
+    "EXIT_MISSING",
+    "COMMAND_MODULES",
+    "status_steps",
+]
 
 EXIT_OK = 0
 EXIT_ERROR = 1
@@ -90,7 +99,7 @@ app = typer.Typer(
 _DEBUG = False
 
 
-def _fail(code: int, message: str, hint: str | None = None) -> "typer.Exit":
+def _fail(code: int, message: str, hint: str | None = None) -> typer.Exit:
     console.print(f"[bold red]error:[/] {message}", markup=True, soft_wrap=True)
     if hint:
         console.print(f"[dim]{hint}[/]", markup=True, soft_wrap=True)
@@ -128,9 +137,12 @@ def handle_errors(fn):
             if _DEBUG:
                 console.print_exception()
                 raise _fail(EXIT_ERROR, f"internal error: {type(e).__name__}: {e}") from None
-            raise _fail(EXIT_ERROR, f"internal error: {type(e).__name__}: {e}",
-                        "This is a bug in jaxface. Rerun with `jaxface --debug ...` for the "
-                        "traceback and report it.") from None
+            raise _fail(
+                EXIT_ERROR,
+                f"internal error: {type(e).__name__}: {e}",
+                "This is a bug in jaxface. Rerun with `jaxface --debug ...` for the "
+                "traceback and report it.",
+            ) from None
 
     return wrapper
 
@@ -145,8 +157,10 @@ def status_steps(title: str, *, quiet: bool = False):
 
     def finish():
         if state["text"] is not None and not quiet:
-            console.print(f"  [green]done[/] {state['text']} [dim]({time.perf_counter() - state['t0']:.2f} s)[/]",
-                          markup=True)
+            console.print(
+                f"  [green]done[/] {state['text']} [dim]({time.perf_counter() - state['t0']:.2f} s)[/]",
+                markup=True,
+            )
 
     def step(text: str):
         finish()
@@ -174,15 +188,24 @@ def _version_callback(value: bool):
 
 @app.callback()
 def _root(
-    version: Optional[bool] = typer.Option(  # noqa: UP007 - typer needs Optional here
-        None, "--version", "-V", callback=_version_callback, is_eager=True,
-        help="Print the version and exit."),
+    version: bool | None = typer.Option(  # noqa: UP007 - typer needs Optional here
+        None,
+        "--version",
+        "-V",
+        callback=_version_callback,
+        is_eager=True,
+        help="Print the version and exit.",
+    ),
     debug: bool = typer.Option(False, "--debug", help="Show full tracebacks on errors."),
-    compile_cache: Optional[str] = typer.Option(  # noqa: UP007
-        None, "--compile-cache", envvar="JAXFACE_COMPILE_CACHE", metavar="DIR|off",
+    compile_cache: str | None = typer.Option(  # noqa: UP007
+        None,
+        "--compile-cache",
+        envvar="JAXFACE_COMPILE_CACHE",
+        metavar="DIR|off",
         help="Folder of the persistent XLA compilation cache (default ~/.cache/jaxface/xla): a later "
-             "run on the same subject loads what this one compiled (a one-scan fit: 54 s -> 32 s). "
-             "'off' turns it off."),
+        "run on the same subject loads what this one compiled (a one-scan fit: 54 s -> 32 s). "
+        "'off' turns it off.",
+    ),
 ):
     """jaxface command line."""
     global _DEBUG
@@ -195,26 +218,42 @@ def _root(
 # ----------------------------------------------------------------------------- demo
 def _check_out_dir(out: Path) -> Path:
     if out.exists() and not out.is_dir():
-        raise typer.BadParameter(f"{out} exists and is not a folder; give a folder path.",
-                                 param_hint="'--out'")
+        raise typer.BadParameter(
+            f"{out} exists and is not a folder; give a folder path.", param_hint="'--out'"
+        )
     return out
 
 
 @app.command(epilog=_EPILOG)
 @handle_errors
 def demo(
-    out: Path = typer.Option(..., "--out", "-o", help="Output folder (created if missing).",
-                             callback=_check_out_dir, file_okay=False, dir_okay=True,
-                             writable=True, resolve_path=False),
-    size: int = typer.Option(600, "--size", min=128, max=4000,
-                             help="Picture panel size in pixels (128-4000)."),
-    labels: bool = typer.Option(False, "--labels/--no-labels",
-                                help="Write the landmark names on the picture."),
+    out: Path = typer.Option(
+        ...,
+        "--out",
+        "-o",
+        help="Output folder (created if missing).",
+        callback=_check_out_dir,
+        file_okay=False,
+        dir_okay=True,
+        writable=True,
+        resolve_path=False,
+    ),
+    size: int = typer.Option(
+        600, "--size", min=128, max=4000, help="Picture panel size in pixels (128-4000)."
+    ),
+    labels: bool = typer.Option(
+        False, "--labels/--no-labels", help="Write the landmark names on the picture."
+    ),
     picture: bool = typer.Option(True, "--picture/--no-picture", help="Render the head PNG."),
-    showcase: bool = typer.Option(True, "--showcase/--head-only",
-                                  help="Also build the rig, synthesise emotions and AUs, scan and fit "
-                                  "them back, and write report.md/report.json (about 2-4 min on 2 CPU cores)."),
-    fit: bool = typer.Option(True, "--fit/--no-fit", help="Showcase: scan and fit back synthetic expressions."),
+    showcase: bool = typer.Option(
+        True,
+        "--showcase/--head-only",
+        help="Also build the rig, synthesise emotions and AUs, scan and fit "
+        "them back, and write report.md/report.json (about 2-4 min on 2 CPU cores).",
+    ),
+    fit: bool = typer.Option(
+        True, "--fit/--no-fit", help="Showcase: scan and fit back synthetic expressions."
+    ),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="Only print errors."),
 ):
     """The showcase on the embedded default head: forward synthesis and inverse fitting.
@@ -259,16 +298,29 @@ def demo(
         return
     if report is not None:
         table = Table(title=f"jaxface demo: report in {out / 'report.md'}")
-        for col in ("scan", "status", "scan->fit mm", "skin error mm", "jaw pitch true/fit", "strongest AUs"):
-            table.add_column(col, overflow="fold")   # a narrow terminal wraps, never cuts, a name
+        for col in (
+            "scan",
+            "status",
+            "scan->fit mm",
+            "skin error mm",
+            "jaw pitch true/fit",
+            "strongest AUs",
+        ):
+            table.add_column(col, overflow="fold")  # a narrow terminal wraps, never cuts, a name
         for f in report.get("fits", []):
-            table.add_row(f["stem"], f["status"], f"{f['scan_to_fit_mean_mm']:.3f}",
-                          f"{f['skin_error_mm']['mean']:.3f}",
-                          f"{f['jaw_true']['pitch_deg']:.1f} / {f['jaw_fit']['pitch_deg']:.2f}",
-                          ", ".join(f"{k} {v:.2f}" for k, v in f["strongest_aus"][:3]))
+            table.add_row(
+                f["stem"],
+                f["status"],
+                f"{f['scan_to_fit_mean_mm']:.3f}",
+                f"{f['skin_error_mm']['mean']:.3f}",
+                f"{f['jaw_true']['pitch_deg']:.1f} / {f['jaw_fit']['pitch_deg']:.2f}",
+                ", ".join(f"{k} {v:.2f}" for k, v in f["strongest_aus"][:3]),
+            )
         console.print(table)
-        console.print(f"pictures: {out / 'emotions.png'}, {out / 'aus.png'}, {out / 'fits'}/*.fit.png; "
-                      f"total {report['timings']['total_s']:.0f} s")
+        console.print(
+            f"pictures: {out / 'emotions.png'}, {out / 'aus.png'}, {out / 'fits'}/*.fit.png; "
+            f"total {report['timings']['total_s']:.0f} s"
+        )
         return
     table = Table(title=f"jaxface demo: files written to {out}", show_lines=False)
     table.add_column("file")
@@ -279,11 +331,14 @@ def demo(
         "landmarks": f"{len(head.landmarks.names)} Bosphorus landmarks (mm)",
         "upper_teeth": f"upper teeth, {head.upper_teeth.n_vertices} vertices",
         "lower_teeth": f"lower teeth, {head.lower_teeth.n_vertices} vertices",
-        "eye_left": "left eyeball", "eye_right": "right eyeball",
+        "eye_left": "left eyeball",
+        "eye_right": "right eyeball",
         "picture": "front + side view with landmarks",
     }
     for key, path in files.items():
-        table.add_row(Path(path).name, desc.get(key, key), f"{os.path.getsize(path) / 1024:.0f} KiB")
+        table.add_row(
+            Path(path).name, desc.get(key, key), f"{os.path.getsize(path) / 1024:.0f} KiB"
+        )
     console.print(table)
 
 
@@ -304,7 +359,9 @@ def _load_extensions() -> None:
         for ep in entry_points(group="jaxface.commands"):
             ep.load()(app)
     except Exception as e:  # noqa: BLE001 - a broken plugin must not break the CLI
-        console.print(f"[yellow]warning:[/] a jaxface.commands plugin failed to load: {e}", markup=True)
+        console.print(
+            f"[yellow]warning:[/] a jaxface.commands plugin failed to load: {e}", markup=True
+        )
 
 
 _loaded = False

@@ -50,7 +50,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from typing import Mapping, Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -77,8 +77,12 @@ __all__ = [
 #: (eye points, nose tip) landmark names tried, in order, to measure the MPEG-4 ENS0
 ENS0_DEFINITIONS: tuple[tuple[tuple[str, ...], str], ...] = (
     (
-        ("Outer left eye corner", "Inner left eye corner", "Inner right eye corner",
-         "Outer right eye corner"),
+        (
+            "Outer left eye corner",
+            "Inner left eye corner",
+            "Inner right eye corner",
+            "Outer right eye corner",
+        ),
         "Nose tip",
     ),
     (("36", "39", "42", "45"), "30"),
@@ -121,8 +125,10 @@ def _as_landmarks(lm, name: str):
 
 def _vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Area-weighted unit vertex normals (zero rows for isolated vertices)."""
-    c = np.cross(vertices[triangles[:, 1]] - vertices[triangles[:, 0]],
-                 vertices[triangles[:, 2]] - vertices[triangles[:, 0]])
+    c = np.cross(
+        vertices[triangles[:, 1]] - vertices[triangles[:, 0]],
+        vertices[triangles[:, 2]] - vertices[triangles[:, 0]],
+    )
     acc = np.zeros_like(vertices)
     for k in range(3):
         np.add.at(acc, triangles[:, k], c)
@@ -195,9 +201,14 @@ def cast_segments(
 
     if mesh is None:
         if vertices is None or triangles is None:
-            raise MeshError("cast_segments needs the target mesh: pass vertices and triangles, "
-                            "or mesh=TriMesh.", problem="bad_arguments")
-        mesh = TriMesh(np.asarray(vertices, dtype=np.float64), np.asarray(triangles), validate=False)
+            raise MeshError(
+                "cast_segments needs the target mesh: pass vertices and triangles, "
+                "or mesh=TriMesh.",
+                problem="bad_arguments",
+            )
+        mesh = TriMesh(
+            np.asarray(vertices, dtype=np.float64), np.asarray(triangles), validate=False
+        )
     o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
     d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
     r = o.shape[0]
@@ -218,8 +229,13 @@ def cast_segments(
             break
         Lk = frac * L
         back = Lk if two_sided else 0.0
-        h = mesh.ray_cast(o[rays] - back * d[rays], d[rays], all_hits=True, max_distance=Lk + back,
-                          merge_coincident=False)
+        h = mesh.ray_cast(
+            o[rays] - back * d[rays],
+            d[rays],
+            all_hits=True,
+            max_distance=Lk + back,
+            merge_coincident=False,
+        )
         ray = rays[np.asarray(h.ray_index)]
         tri = np.asarray(h.points.tri, dtype=np.int64)
         bary = h.barycentric
@@ -449,9 +465,15 @@ def fit_source_to_target(
         return D, cand[hit], err, q
 
     def record(step, P, ids, err):
-        history.append(dict(step=step, pairs=len(P), hits=int(ids.size),
-                            mean_error=float(err.mean()) if err.size else 0.0,
-                            max_error=float(err.max()) if err.size else 0.0))
+        history.append(
+            dict(
+                step=step,
+                pairs=len(P),
+                hits=int(ids.size),
+                mean_error=float(err.mean()) if err.size else 0.0,
+                max_error=float(err.max()) if err.size else 0.0,
+            )
+        )
 
     # step 0: landmarks only
     G, P, Q = refit()
@@ -467,8 +489,9 @@ def fit_source_to_target(
         if spec is None:
             spec = _contours.BOSPHORUS_CONTOURS
             flat = [n for up, lo in spec.values() for n in list(up) + list(lo)]
-            flat68 = [n for up, lo in _contours.MULTIPIE68_CONTOURS.values()
-                      for n in list(up) + list(lo)]
+            flat68 = [
+                n for up, lo in _contours.MULTIPIE68_CONTOURS.values() for n in list(up) + list(lo)
+            ]
             if slm.missing(flat) and not slm.missing(flat68):
                 spec = _contours.MULTIPIE68_CONTOURS
         cs = _contours.extract_contours(src, slm, spec)
@@ -485,12 +508,15 @@ def fit_source_to_target(
             elif contour_matching == "nearest":
                 cid, cq = _contours.match_nearest(D, cs[feat], tgt.vertices, ct[feat])
             else:
-                raise MeshError(f"unknown contour_matching {contour_matching!r}; use "
-                                "'arclength' or 'nearest'.", problem="bad_arguments")
+                raise MeshError(
+                    f"unknown contour_matching {contour_matching!r}; use 'arclength' or 'nearest'.",
+                    problem="bad_arguments",
+                )
             far = np.linalg.norm(cq - D[cid], axis=1) > contour_gate * ens0
             if far.all():
-                skipped[feat] = (f"every contour pair is farther than {contour_gate} * ENS0 from "
-                                 "the rough fit")
+                skipped[feat] = (
+                    f"every contour pair is farther than {contour_gate} * ENS0 from the rough fit"
+                )
                 continue
             for i, qq in zip(cid[~far], cq[~far]):
                 if not near_lm[i]:
@@ -507,8 +533,10 @@ def fit_source_to_target(
                 record(1, P, ids, err)
             else:  # the contours made the fit worse: drop them (reported)
                 for feat in used:
-                    skipped[feat] = (f"rejected: the contour pairs raised the mean ray error of "
-                                     f"the movable vertices from {before:.3g} to {after:.3g} mm")
+                    skipped[feat] = (
+                        f"rejected: the contour pairs raised the mean ray error of "
+                        f"the movable vertices from {before:.3g} to {after:.3g} mm"
+                    )
                 used = []
                 for i in [i for i, o in origin.items() if o == "contour"]:
                     del pairs[i], origin[i]
@@ -624,9 +652,16 @@ def _source_deltas(S0, source_targets, source_deltas):
     return arr - S0 if source_deltas is None else arr
 
 
-def apply_clone(fit: FitResult, mapping: SurfaceMap, source_triangles, target_vertices,
-                deltas: np.ndarray, moving: np.ndarray, mode: str = "displacement",
-                transfer: str = "morph") -> np.ndarray:
+def apply_clone(
+    fit: FitResult,
+    mapping: SurfaceMap,
+    source_triangles,
+    target_vertices,
+    deltas: np.ndarray,
+    moving: np.ndarray,
+    mode: str = "displacement",
+    transfer: str = "morph",
+) -> np.ndarray:
     """Clone source morph targets with a fitted ``G`` and a target-on-source mapping.
 
     Arguments:
@@ -671,8 +706,10 @@ def apply_clone(fit: FitResult, mapping: SurfaceMap, source_triangles, target_ve
         M, _ = fit.morph.affine_part()
         disp[tt, vv] = deltas[tt, vv] @ np.asarray(M, dtype=np.float64).T
     else:
-        raise MeshError(f"unknown transfer {transfer!r}; use 'morph', 'rough' or 'affine'.",
-                        problem="bad_arguments")
+        raise MeshError(
+            f"unknown transfer {transfer!r}; use 'morph', 'rough' or 'affine'.",
+            problem="bad_arguments",
+        )
     tv = np.asarray(target_vertices, dtype=np.float64)
     out = tv[None] + np.einsum("vk,tvkd->tvd", mapping.bary, disp[:, tri_v])
     if mode == "thesis":
@@ -680,8 +717,10 @@ def apply_clone(fit: FitResult, mapping: SurfaceMap, source_triangles, target_ve
         touched = moving[:, tri_v].any(axis=2)  # (T, Vt)
         out = np.where(touched[..., None], out - tv[None] + snapped[None], out)
     elif mode != "displacement":
-        raise MeshError(f"unknown cloning mode {mode!r}; use 'displacement' or 'thesis'.",
-                        problem="bad_arguments")
+        raise MeshError(
+            f"unknown cloning mode {mode!r}; use 'displacement' or 'thesis'.",
+            problem="bad_arguments",
+        )
     return out
 
 
@@ -729,15 +768,14 @@ def clone_motion(
         names = tuple(str(i) for i in range(deltas.shape[0]))
     names = tuple(names)
     if len(names) != deltas.shape[0]:
-        raise MeshError(f"{len(names)} names for {deltas.shape[0]} morph targets.",
-                        problem="shape")
-    fit = fit_source_to_target(src, tgt, source_landmarks, target_landmarks,
-                               movable=moving.any(axis=0), **fit_kwargs)
+        raise MeshError(f"{len(names)} names for {deltas.shape[0]} morph targets.", problem="shape")
+    fit = fit_source_to_target(
+        src, tgt, source_landmarks, target_landmarks, movable=moving.any(axis=0), **fit_kwargs
+    )
     t1 = time.perf_counter()
     tn = _vertex_normals(tgt.vertices, tgt.triangles)
     mapping = map_onto_surface(tgt.vertices, tn, fit.ray_length, fit.deformed, src.triangles)
-    targets = apply_clone(fit, mapping, src.triangles, tgt.vertices, deltas, moving, mode,
-                          transfer)
+    targets = apply_clone(fit, mapping, src.triangles, tgt.vertices, deltas, moving, mode, transfer)
     t2 = time.perf_counter()
     return CloneResult(
         targets=targets,

@@ -128,8 +128,9 @@ def particle_counts(indices, n_particles: int) -> np.ndarray:
     return np.bincount(s[keep], minlength=n_particles).astype(np.int64)
 
 
-def balance_coloring(indices, colors, n_particles: int | None = None,
-                     n_colors: int | None = None) -> np.ndarray:
+def balance_coloring(
+    indices, colors, n_particles: int | None = None, n_colors: int | None = None
+) -> np.ndarray:
     """Even out the colour sizes of a valid colouring without creating conflicts.
 
     Every constraint in a colour larger than ``ceil(M / K)`` is moved, if it can be, to the

@@ -46,8 +46,11 @@ def enable_compile_cache(path: str | os.PathLike | None = None) -> Path | None:
         if not os.access(folder, os.W_OK):
             raise PermissionError(f"{folder} is not writable")
     except OSError as e:
-        warnings.warn(f"the compilation cache stays off: {e}. Give a writable folder with "
-                      f"--compile-cache DIR (or JAXFACE_COMPILE_CACHE=DIR), or 'off'.", stacklevel=2)
+        warnings.warn(
+            f"the compilation cache stays off: {e}. Give a writable folder with "
+            f"--compile-cache DIR (or JAXFACE_COMPILE_CACHE=DIR), or 'off'.",
+            stacklevel=2,
+        )
         return None
     import jax
 

@@ -52,8 +52,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .errors import MeshError
 from ._arrays import to_jax
+from .errors import MeshError
 
 __all__ = [
     "Constraints",
@@ -142,8 +142,13 @@ def _hinge_ok(L2, n1s, n2s, w1s, w2s, r):
     puts it, and the float32 reverse pass through the default head's rig at rest came out NaN.
     """
     # a zero edge or zero wings fail the normal tests (0 > 0), so no absolute floor is needed
-    return ((L2 > r * (w1s + w2s)) & (w1s > r * L2) & (w2s > r * L2)
-            & (n1s > r * L2 * w1s) & (n2s > r * L2 * w2s))
+    return (
+        (L2 > r * (w1s + w2s))
+        & (w1s > r * L2)
+        & (w2s > r * L2)
+        & (n1s > r * L2 * w1s)
+        & (n2s > r * L2 * w2s)
+    )
 
 
 def _bend_geometry(a, b, c, d):
@@ -222,8 +227,10 @@ def _check_indices(idx, arity, name):
     idx = np.asarray(idx)
     if idx.ndim == 1 and arity == 1:
         idx = idx[:, None]
-    if idx.ndim != 2 or idx.shape[1] != arity or not (
-        np.issubdtype(idx.dtype, np.integer) or idx.size == 0
+    if (
+        idx.ndim != 2
+        or idx.shape[1] != arity
+        or not (np.issubdtype(idx.dtype, np.integer) or idx.size == 0)
     ):
         raise MeshError(
             f"{name} indices must be an (M, {arity}) integer array, got shape {idx.shape} "
@@ -298,18 +305,22 @@ class Constraints(eqx.Module):
         return self.per_constraint
 
     # -- layout ----------------------------------------------------------------------------
-    def user_order(self) -> "Constraints":
+    def user_order(self) -> Constraints:
         """Copy in the user's order (``layout (1, M)``), undoing an arrangement."""
         if not self.arranged and np.array_equal(np.asarray(self.perm), np.arange(self.size)):
             return self
         inv = np.asarray(self.inv_perm)
-        changes = {f: getattr(self, f)[inv] for f in self._arranged_fields()
-                   if getattr(self, f) is not None}
+        changes = {
+            f: getattr(self, f)[inv]
+            for f in self._arranged_fields()
+            if getattr(self, f) is not None
+        }
         ident = jnp.arange(inv.size, dtype=jnp.int32)
-        return dataclasses.replace(self, **changes, perm=ident, inv_perm=ident,
-                                   layout=(1, int(inv.size)))
+        return dataclasses.replace(
+            self, **changes, perm=ident, inv_perm=ident, layout=(1, int(inv.size))
+        )
 
-    def arrange(self, colors, n_particles: int) -> "Constraints":
+    def arrange(self, colors, n_particles: int) -> Constraints:
         """Copy arranged in the padded colour layout (NumPy, build time).
 
         Args:
@@ -338,8 +349,11 @@ class Constraints(eqx.Module):
         idx[pad] = (n_particles + rank[pad])[:, None]
         changes["idx"] = jnp.asarray(idx, jnp.int32)
         return dataclasses.replace(
-            g, **changes, perm=jnp.asarray(perm, jnp.int32),
-            inv_perm=jnp.asarray(slot, jnp.int32), layout=(K, S),
+            g,
+            **changes,
+            perm=jnp.asarray(perm, jnp.int32),
+            inv_perm=jnp.asarray(slot, jnp.int32),
+            layout=(K, S),
         )
 
     @property
@@ -360,21 +374,20 @@ class Constraints(eqx.Module):
                 out[f] = v.reshape((K, S) + v.shape[1:])
         return out
 
-    def block_view(self, fields: dict) -> "Constraints":
+    def block_view(self, fields: dict) -> Constraints:
         """This group restricted to one colour block (``fields`` from one row of
         :meth:`blocks`); used inside the solver's scan body."""
         return dataclasses.replace(self, **fields)
 
     # -- runtime updates -------------------------------------------------------------------
-    def set(self, **fields) -> "Constraints":
+    def set(self, **fields) -> Constraints:
         """Copy with fields replaced; per-constraint fields are given in the user's order.
 
         Example: ``anchors.set(target=t)`` with ``t`` ``(M, 3)`` mm. Differentiable in the new
         values (a gather by ``perm``); scalars broadcast to every constraint.
         """
         new = self
-        src = jnp.asarray(np.where(np.asarray(self.perm) < 0, 0, np.asarray(self.perm)),
-                          jnp.int32)
+        src = jnp.asarray(np.where(np.asarray(self.perm) < 0, 0, np.asarray(self.perm)), jnp.int32)
         for name, value in fields.items():
             if name not in self._settable():
                 raise MeshError(
@@ -398,8 +411,9 @@ class Constraints(eqx.Module):
         return new
 
     def _settable(self):
-        return [f for f in self.__dataclass_fields__
-                if f not in ("perm", "inv_perm", "layout", "idx")]
+        return [
+            f for f in self.__dataclass_fields__ if f not in ("perm", "inv_perm", "layout", "idx")
+        ]
 
     # -- kernels ---------------------------------------------------------------------------
     def terms(self, P):
@@ -599,7 +613,9 @@ def _np_hinge_ok(x, idx) -> np.ndarray:
     n1 = np.cross(e, ca)
     n2 = np.cross(a - b, db)
     dot = lambda u, v: np.einsum("ij,ij->i", u, v)  # noqa: E731
-    return _hinge_ok(dot(e, e), dot(n1, n1), dot(n2, n2), dot(ca, ca), dot(db, db), REST_HINGE_PRECISION)
+    return _hinge_ok(
+        dot(e, e), dot(n1, n1), dot(n2, n2), dot(ca, ca), dot(db, db), REST_HINGE_PRECISION
+    )
 
 
 def _np_dihedral(x, idx):
@@ -692,8 +708,9 @@ class VolumeConstraint(Constraints):
     per_constraint: ClassVar[tuple[str, ...]] = ()
 
     @classmethod
-    def build(cls, triangles, x_rest=None, *, rest=None, origin=None, stiffness=1.0,
-              compliance=None):
+    def build(
+        cls, triangles, x_rest=None, *, rest=None, origin=None, stiffness=1.0, compliance=None
+    ):
         """Build from ``(F, 3)`` outward-oriented triangles.
 
         Args:
@@ -716,9 +733,7 @@ class VolumeConstraint(Constraints):
             if x_rest is None:
                 raise MeshError("volume constraint needs x_rest or rest.", problem="shape")
             x = _as_float(x_rest, name="x_rest") - origin
-            rest = np.einsum(
-                "ij,ij->", np.cross(x[tri[:, 0]], x[tri[:, 1]]), x[tri[:, 2]]
-            ) / 6.0
+            rest = np.einsum("ij,ij->", np.cross(x[tri[:, 0]], x[tri[:, 1]]), x[tri[:, 2]]) / 6.0
         rest = _as_float(rest, (1,), "volume rest")
         k = _as_float(stiffness, (1,), "volume stiffness")
         _check_stiffness(k, "volume")
@@ -760,13 +775,13 @@ class VolumeConstraint(Constraints):
         return ("idx",)
 
     def user_order(self):
-        if not self.arranged and np.array_equal(np.asarray(self.perm),
-                                                np.arange(self.n_triangles)):
+        if not self.arranged and np.array_equal(np.asarray(self.perm), np.arange(self.n_triangles)):
             return self
         inv = np.asarray(self.inv_perm)
         ident = jnp.arange(inv.size, dtype=jnp.int32)
-        return dataclasses.replace(self, idx=self.idx[inv], perm=ident, inv_perm=ident,
-                                   layout=(1, int(inv.size)))
+        return dataclasses.replace(
+            self, idx=self.idx[inv], perm=ident, inv_perm=ident, layout=(1, int(inv.size))
+        )
 
     def set(self, **fields):
         """Copy with ``rest`` (mm^3), ``origin`` (mm), ``stiffness`` or ``compliance`` replaced."""
@@ -900,7 +915,11 @@ class HalfSpaceConstraints(Constraints):
     arity: ClassVar[int] = 1
     unilateral: ClassVar[bool] = True
     per_constraint: ClassVar[tuple[str, ...]] = (
-        "idx", "stiffness", "compliance", "normal", "offset"
+        "idx",
+        "stiffness",
+        "compliance",
+        "normal",
+        "offset",
     )
 
     @classmethod

@@ -28,7 +28,7 @@ eye hole on one mesh, a closed eye surface on the other) rather than pairing unl
 from __future__ import annotations
 
 import dataclasses
-from typing import Mapping, Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 from scipy.sparse import coo_matrix
@@ -223,8 +223,9 @@ def lip_path(mesh, start: int, end: int, upper: bool) -> np.ndarray:
     for _ in range(mesh.n_vertices):
         if v == end:
             break
-        nb = np.array([n for n in indices[indptr[v] : indptr[v + 1]] if n not in visited],
-                      dtype=np.int64)
+        nb = np.array(
+            [n for n in indices[indptr[v] : indptr[v + 1]] if n not in visited], dtype=np.int64
+        )
         if end in nb:
             path.append(end)
             v = end
@@ -276,7 +277,11 @@ def loop_arcs(mesh, loop: np.ndarray, a: int, b: int) -> tuple[np.ndarray, np.nd
 def _snap(mesh, points: np.ndarray) -> np.ndarray:
     from scipy.spatial import cKDTree
 
-    return cKDTree(mesh.vertices).query(np.asarray(points, dtype=np.float64).reshape(-1, 3))[1].astype(np.int64)
+    return (
+        cKDTree(mesh.vertices)
+        .query(np.asarray(points, dtype=np.float64).reshape(-1, 3))[1]
+        .astype(np.int64)
+    )
 
 
 def extract_contour(
@@ -333,14 +338,20 @@ def extract_contour(
                     continue
                 up, lo = loop_arcs(mesh, loop, la, lb)
                 # connect the landmark corners to the loop
-                head = _path_through(mesh, [a, la], method)[:-1] if la != a else np.zeros(0, np.int64)
-                tail = _path_through(mesh, [lb, b], method)[1:] if lb != b else np.zeros(0, np.int64)
+                head = (
+                    _path_through(mesh, [a, la], method)[:-1] if la != a else np.zeros(0, np.int64)
+                )
+                tail = (
+                    _path_through(mesh, [lb, b], method)[1:] if lb != b else np.zeros(0, np.int64)
+                )
                 up = np.concatenate([head, up, tail])
                 lo = np.concatenate([head, lo, tail])
                 return Contour(name, "loop", up, lo)
     if corners_only and (name.startswith("mouth") or name.startswith("lip")):
         return Contour(name, "lip", lip_path(mesh, a, b, True), lip_path(mesh, a, b, False))
-    return Contour(name, "path", _path_through(mesh, upper, method), _path_through(mesh, lower, method))
+    return Contour(
+        name, "path", _path_through(mesh, upper, method), _path_through(mesh, lower, method)
+    )
 
 
 def extract_contours(

@@ -67,8 +67,8 @@ from __future__ import annotations
 
 import re
 import warnings
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Mapping
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -125,7 +125,7 @@ class ControlPoint:
     offset: tuple[float, float] = (0.0, 0.0)
     side: str = "L"
 
-    def mirrored(self) -> "ControlPoint":
+    def mirrored(self) -> ControlPoint:
         """The right-side twin of a left-side point (labels swapped, lateral offset mirrored)."""
         if self.side != "L":
             return self
@@ -133,8 +133,13 @@ class ControlPoint:
         for left, right in MIRROR_PAIRS:
             swap[left], swap[right] = right, left
         base = tuple((swap.get(l, l), w) for l, w in self.base)
-        return ControlPoint(self.name[:-2] + "_R" if self.name.endswith("_L") else self.name + "_R",
-                            self.kind, base, self.offset, "R")
+        return ControlPoint(
+            self.name[:-2] + "_R" if self.name.endswith("_L") else self.name + "_R",
+            self.kind,
+            base,
+            self.offset,
+            "R",
+        )
 
 
 @dataclass(frozen=True)
@@ -177,7 +182,9 @@ class AULayout:
         return tuple(dict.fromkeys(names + list(self.fixed_landmarks)))
 
 
-def _cp(name: str, kind: str, base, dx: float = 0.0, dy: float = 0.0, side: str = "L") -> ControlPoint:
+def _cp(
+    name: str, kind: str, base, dx: float = 0.0, dy: float = 0.0, side: str = "L"
+) -> ControlPoint:
     if isinstance(base, str):
         base = ((base, 1.0),)
     elif isinstance(base, Mapping):
@@ -193,8 +200,12 @@ _OLE, _ILE = "Outer left eye corner", "Inner left eye corner"
 _NSL, _NSR = "Nose saddle left", "Nose saddle right"
 _LNP, _NT = "Left nose peak", "Nose tip"
 _LMC, _RMC = "Left mouth corner", "Right mouth corner"
-_ULO, _ULI, _LLI, _LLO = ("Upper lip outer middle", "Upper lip inner middle", "Lower lip inner middle",
-                          "Lower lip outer middle")
+_ULO, _ULI, _LLI, _LLO = (
+    "Upper lip outer middle",
+    "Upper lip inner middle",
+    "Lower lip inner middle",
+    "Lower lip outer middle",
+)
 _CM = "Chin middle"
 _BROW_MID = {_ILB: 0.5, _IRB: 0.5}
 _ROOT = {_NSL: 0.5, _NSR: 0.5}
@@ -212,105 +223,172 @@ def _nasolabial(t: float) -> tuple[dict, float, float]:
     return {_LNP: 1.0 - t, _LMC: t}, 0.03 + 0.03 * t, -0.02 + 0.05 * t
 
 
-_UPPER_FIXED = ("Outer left eye corner", "Inner left eye corner", "Inner right eye corner",
-                "Outer right eye corner")
+_UPPER_FIXED = (
+    "Outer left eye corner",
+    "Inner left eye corner",
+    "Inner right eye corner",
+    "Outer right eye corner",
+)
 _LOWER_FIXED = ("Nose tip",)
 
 #: Control-point layouts of the eight AUs of the thesis (our design, see the module doc).
 AU_LAYOUTS: dict[int, AULayout] = {
-    1: AULayout(1, "Inner Brow Raiser", ("frontalis, pars medialis",), "upper", (
-        _cp("frontalis_medial_1", "muscle", _ILB),
-        _cp("frontalis_medial_2", "muscle", _ILB, 0.0, 0.08),
-        _cp("frontalis_medial_3", "muscle", _ILB, 0.0, 0.16),
-        _cp("frontalis_medial_4", "muscle", {_ILB: 0.5, _MLB: 0.5}, 0.0, 0.03),
-        _cp("frontalis_medial_5", "muscle", {_ILB: 0.5, _MLB: 0.5}, 0.0, 0.12),
-        _cp("forehead_medial_wrinkle", "wrinkle", _ILB, 0.06, 0.12),
-        _cp("glabella_upper", "muscle", _BROW_MID, 0.0, 0.08, side="C"),
-        _cp("forehead_middle_wrinkle", "wrinkle", _BROW_MID, 0.0, 0.16, side="C"),
-    ), _UPPER_FIXED),
-    2: AULayout(2, "Outer Brow Raiser", ("frontalis, pars lateralis",), "upper", (
-        _cp("frontalis_lateral_1", "muscle", _OLB),
-        _cp("frontalis_lateral_2", "muscle", _OLB, 0.0, 0.08),
-        _cp("frontalis_lateral_3", "muscle", _OLB, -0.02, 0.16),
-        _cp("frontalis_lateral_4", "muscle", _MLB),
-        _cp("frontalis_lateral_5", "muscle", {_MLB: 0.5, _OLB: 0.5}, 0.0, 0.05),
-        _cp("frontalis_lateral_6", "muscle", {_MLB: 0.5, _OLB: 0.5}, 0.0, 0.14),
-        _cp("forehead_lateral_wrinkle", "wrinkle", _MLB, 0.0, 0.10),
-    ), _UPPER_FIXED),
-    4: AULayout(4, "Brow Lowerer", ("corrugator supercilii", "depressor supercilii", "procerus"), "upper", (
-        _cp("corrugator_1", "muscle", _ILB),
-        _cp("corrugator_2", "muscle", {_ILB: 0.5, _MLB: 0.5}),
-        _cp("corrugator_3", "muscle", _MLB),
-        _cp("corrugator_4", "muscle", _ILB, 0.0, 0.07),
-        _cp("corrugator_5", "muscle", {_ILB: 0.5, _MLB: 0.5}, 0.0, 0.08),
-        _cp("depressor_supercilii", "muscle", _OLB),
-        _cp("glabella_furrow_1", "wrinkle", _ILB, -0.04, -0.01),
-        _cp("glabella_furrow_2", "wrinkle", _ILB, -0.04, 0.05),
-        _cp("procerus_1", "muscle", _BROW_MID, 0.0, 0.0, side="C"),
-        _cp("procerus_2", "muscle", _ROOT, 0.0, 0.06, side="C"),
-        _cp("nasal_root_wrinkle", "wrinkle", _BROW_MID, 0.0, 0.09, side="C"),
-    ), _UPPER_FIXED),
-    12: AULayout(12, "Lip Corner Puller", ("zygomaticus major",), "lower", (
-        *(_cp(f"zygomaticus_major_{k + 1}", "muscle", *_zygomatic_line(t))
-          for k, t in enumerate((0.0, 0.25, 0.5, 0.75, 1.0))),
-        *(_cp(f"nasolabial_{k + 1}", "wrinkle", *_nasolabial(t)) for k, t in enumerate((0.0, 0.5, 1.0))),
-        _cp("cheek_bulge", "wrinkle", {_LNP: 0.5, _OLE: 0.5}, 0.06, -0.08),
-        _cp("upper_lip_lateral", "muscle", {_LMC: 0.5, _ULO: 0.5}),
-        _cp("lower_lip_lateral", "muscle", {_LMC: 0.5, _LLO: 0.5}),
-        _cp("chin_lateral", "muscle", {_LMC: 0.5, _CM: 0.5}),
-        _cp("upper_lip_middle", "muscle", _ULO, side="C"),
-        _cp("lower_lip_middle", "muscle", _LLO, side="C"),
-        _cp("mentolabial", "muscle", {_LLO: 0.5, _CM: 0.5}, side="C"),
-        _cp("chin_middle", "muscle", _CM, side="C"),
-    ), _LOWER_FIXED, 0.35),
-    14: AULayout(14, "Dimpler", ("buccinator",), "lower", (
-        _cp("buccinator_1", "muscle", _LMC),
-        _cp("buccinator_2", "muscle", _LMC, 0.05, 0.0),
-        _cp("buccinator_3", "muscle", _LMC, 0.10, 0.0),
-        _cp("buccinator_4", "muscle", _LMC, 0.10, 0.07),
-        _cp("buccinator_5", "muscle", _LMC, 0.10, -0.07),
-        _cp("dimple", "wrinkle", _LMC, 0.06, -0.01),
-        _cp("upper_lip_lateral", "muscle", {_LMC: 0.5, _ULO: 0.5}),
-        _cp("lower_lip_lateral", "muscle", {_LMC: 0.5, _LLO: 0.5}),
-        _cp("upper_lip_middle", "muscle", _ULO, side="C"),
-        _cp("lower_lip_middle", "muscle", _LLO, side="C"),
-    ), _LOWER_FIXED),
-    15: AULayout(15, "Lip Corner Depressor", ("depressor anguli oris (triangularis)",), "lower", (
-        _cp("triangularis_1", "muscle", _LMC),
-        _cp("triangularis_2", "muscle", _LMC, 0.03, -0.08),
-        _cp("triangularis_3", "muscle", _LMC, 0.06, -0.16),
-        _cp("triangularis_4", "muscle", _LMC, 0.09, -0.26),
-        _cp("corner_bulge_1", "wrinkle", _LMC, 0.06, 0.03),
-        _cp("corner_bulge_2", "wrinkle", _LMC, 0.08, -0.04),
-        _cp("upper_lip_lateral", "muscle", {_LMC: 0.5, _ULO: 0.5}),
-        _cp("lower_lip_lateral", "muscle", {_LMC: 0.5, _LLO: 0.5}),
-        _cp("lower_lip_middle", "muscle", _LLO, side="C"),
-    ), _LOWER_FIXED),
-    17: AULayout(17, "Chin Raiser", ("mentalis",), "lower", (
-        _cp("mentalis_1", "muscle", _CM, 0.08, 0.03),
-        _cp("mentalis_2", "muscle", _CM, 0.12, -0.03),
-        _cp("chin_lateral", "muscle", {_LMC: 0.5, _CM: 0.5}),
-        _cp("chin_dimpling", "wrinkle", _CM, 0.05, 0.06),
-        _cp("lower_lip_lateral", "muscle", {_LMC: 0.5, _LLO: 0.5}),
-        _cp("mentalis_centre", "muscle", _CM, side="C"),
-        _cp("mentalis_upper", "muscle", {_LLO: 0.5, _CM: 0.5}, side="C"),
-        _cp("chin_lower", "muscle", _CM, 0.0, -0.06, side="C"),
-        _cp("lower_lip_middle", "muscle", _LLO, side="C"),
-    ), _LOWER_FIXED),
-    20: AULayout(20, "Lip Stretcher", ("risorius", "platysma"), "lower", (
-        _cp("risorius_1", "muscle", _LMC),
-        _cp("risorius_2", "muscle", _LMC, 0.08, -0.01),
-        _cp("risorius_3", "muscle", _LMC, 0.16, -0.02),
-        _cp("risorius_4", "muscle", _LMC, 0.25, -0.03),
-        _cp("platysma_fold", "wrinkle", _LMC, 0.05, -0.08),
-        _cp("nasolabial_lower", "wrinkle", _LMC, 0.08, 0.06),
-        _cp("upper_lip_lateral", "muscle", {_LMC: 0.5, _ULO: 0.5}),
-        _cp("lower_lip_lateral", "muscle", {_LMC: 0.5, _LLO: 0.5}),
-        _cp("chin_lateral", "muscle", {_LMC: 0.5, _CM: 0.5}),
-        _cp("upper_lip_middle", "muscle", _ULO, side="C"),
-        _cp("lower_lip_middle", "muscle", _LLO, side="C"),
-        _cp("chin_middle", "muscle", _CM, side="C"),
-    ), _LOWER_FIXED, 0.35),
+    1: AULayout(
+        1,
+        "Inner Brow Raiser",
+        ("frontalis, pars medialis",),
+        "upper",
+        (
+            _cp("frontalis_medial_1", "muscle", _ILB),
+            _cp("frontalis_medial_2", "muscle", _ILB, 0.0, 0.08),
+            _cp("frontalis_medial_3", "muscle", _ILB, 0.0, 0.16),
+            _cp("frontalis_medial_4", "muscle", {_ILB: 0.5, _MLB: 0.5}, 0.0, 0.03),
+            _cp("frontalis_medial_5", "muscle", {_ILB: 0.5, _MLB: 0.5}, 0.0, 0.12),
+            _cp("forehead_medial_wrinkle", "wrinkle", _ILB, 0.06, 0.12),
+            _cp("glabella_upper", "muscle", _BROW_MID, 0.0, 0.08, side="C"),
+            _cp("forehead_middle_wrinkle", "wrinkle", _BROW_MID, 0.0, 0.16, side="C"),
+        ),
+        _UPPER_FIXED,
+    ),
+    2: AULayout(
+        2,
+        "Outer Brow Raiser",
+        ("frontalis, pars lateralis",),
+        "upper",
+        (
+            _cp("frontalis_lateral_1", "muscle", _OLB),
+            _cp("frontalis_lateral_2", "muscle", _OLB, 0.0, 0.08),
+            _cp("frontalis_lateral_3", "muscle", _OLB, -0.02, 0.16),
+            _cp("frontalis_lateral_4", "muscle", _MLB),
+            _cp("frontalis_lateral_5", "muscle", {_MLB: 0.5, _OLB: 0.5}, 0.0, 0.05),
+            _cp("frontalis_lateral_6", "muscle", {_MLB: 0.5, _OLB: 0.5}, 0.0, 0.14),
+            _cp("forehead_lateral_wrinkle", "wrinkle", _MLB, 0.0, 0.10),
+        ),
+        _UPPER_FIXED,
+    ),
+    4: AULayout(
+        4,
+        "Brow Lowerer",
+        ("corrugator supercilii", "depressor supercilii", "procerus"),
+        "upper",
+        (
+            _cp("corrugator_1", "muscle", _ILB),
+            _cp("corrugator_2", "muscle", {_ILB: 0.5, _MLB: 0.5}),
+            _cp("corrugator_3", "muscle", _MLB),
+            _cp("corrugator_4", "muscle", _ILB, 0.0, 0.07),
+            _cp("corrugator_5", "muscle", {_ILB: 0.5, _MLB: 0.5}, 0.0, 0.08),
+            _cp("depressor_supercilii", "muscle", _OLB),
+            _cp("glabella_furrow_1", "wrinkle", _ILB, -0.04, -0.01),
+            _cp("glabella_furrow_2", "wrinkle", _ILB, -0.04, 0.05),
+            _cp("procerus_1", "muscle", _BROW_MID, 0.0, 0.0, side="C"),
+            _cp("procerus_2", "muscle", _ROOT, 0.0, 0.06, side="C"),
+            _cp("nasal_root_wrinkle", "wrinkle", _BROW_MID, 0.0, 0.09, side="C"),
+        ),
+        _UPPER_FIXED,
+    ),
+    12: AULayout(
+        12,
+        "Lip Corner Puller",
+        ("zygomaticus major",),
+        "lower",
+        (
+            *(
+                _cp(f"zygomaticus_major_{k + 1}", "muscle", *_zygomatic_line(t))
+                for k, t in enumerate((0.0, 0.25, 0.5, 0.75, 1.0))
+            ),
+            *(
+                _cp(f"nasolabial_{k + 1}", "wrinkle", *_nasolabial(t))
+                for k, t in enumerate((0.0, 0.5, 1.0))
+            ),
+            _cp("cheek_bulge", "wrinkle", {_LNP: 0.5, _OLE: 0.5}, 0.06, -0.08),
+            _cp("upper_lip_lateral", "muscle", {_LMC: 0.5, _ULO: 0.5}),
+            _cp("lower_lip_lateral", "muscle", {_LMC: 0.5, _LLO: 0.5}),
+            _cp("chin_lateral", "muscle", {_LMC: 0.5, _CM: 0.5}),
+            _cp("upper_lip_middle", "muscle", _ULO, side="C"),
+            _cp("lower_lip_middle", "muscle", _LLO, side="C"),
+            _cp("mentolabial", "muscle", {_LLO: 0.5, _CM: 0.5}, side="C"),
+            _cp("chin_middle", "muscle", _CM, side="C"),
+        ),
+        _LOWER_FIXED,
+        0.35,
+    ),
+    14: AULayout(
+        14,
+        "Dimpler",
+        ("buccinator",),
+        "lower",
+        (
+            _cp("buccinator_1", "muscle", _LMC),
+            _cp("buccinator_2", "muscle", _LMC, 0.05, 0.0),
+            _cp("buccinator_3", "muscle", _LMC, 0.10, 0.0),
+            _cp("buccinator_4", "muscle", _LMC, 0.10, 0.07),
+            _cp("buccinator_5", "muscle", _LMC, 0.10, -0.07),
+            _cp("dimple", "wrinkle", _LMC, 0.06, -0.01),
+            _cp("upper_lip_lateral", "muscle", {_LMC: 0.5, _ULO: 0.5}),
+            _cp("lower_lip_lateral", "muscle", {_LMC: 0.5, _LLO: 0.5}),
+            _cp("upper_lip_middle", "muscle", _ULO, side="C"),
+            _cp("lower_lip_middle", "muscle", _LLO, side="C"),
+        ),
+        _LOWER_FIXED,
+    ),
+    15: AULayout(
+        15,
+        "Lip Corner Depressor",
+        ("depressor anguli oris (triangularis)",),
+        "lower",
+        (
+            _cp("triangularis_1", "muscle", _LMC),
+            _cp("triangularis_2", "muscle", _LMC, 0.03, -0.08),
+            _cp("triangularis_3", "muscle", _LMC, 0.06, -0.16),
+            _cp("triangularis_4", "muscle", _LMC, 0.09, -0.26),
+            _cp("corner_bulge_1", "wrinkle", _LMC, 0.06, 0.03),
+            _cp("corner_bulge_2", "wrinkle", _LMC, 0.08, -0.04),
+            _cp("upper_lip_lateral", "muscle", {_LMC: 0.5, _ULO: 0.5}),
+            _cp("lower_lip_lateral", "muscle", {_LMC: 0.5, _LLO: 0.5}),
+            _cp("lower_lip_middle", "muscle", _LLO, side="C"),
+        ),
+        _LOWER_FIXED,
+    ),
+    17: AULayout(
+        17,
+        "Chin Raiser",
+        ("mentalis",),
+        "lower",
+        (
+            _cp("mentalis_1", "muscle", _CM, 0.08, 0.03),
+            _cp("mentalis_2", "muscle", _CM, 0.12, -0.03),
+            _cp("chin_lateral", "muscle", {_LMC: 0.5, _CM: 0.5}),
+            _cp("chin_dimpling", "wrinkle", _CM, 0.05, 0.06),
+            _cp("lower_lip_lateral", "muscle", {_LMC: 0.5, _LLO: 0.5}),
+            _cp("mentalis_centre", "muscle", _CM, side="C"),
+            _cp("mentalis_upper", "muscle", {_LLO: 0.5, _CM: 0.5}, side="C"),
+            _cp("chin_lower", "muscle", _CM, 0.0, -0.06, side="C"),
+            _cp("lower_lip_middle", "muscle", _LLO, side="C"),
+        ),
+        _LOWER_FIXED,
+    ),
+    20: AULayout(
+        20,
+        "Lip Stretcher",
+        ("risorius", "platysma"),
+        "lower",
+        (
+            _cp("risorius_1", "muscle", _LMC),
+            _cp("risorius_2", "muscle", _LMC, 0.08, -0.01),
+            _cp("risorius_3", "muscle", _LMC, 0.16, -0.02),
+            _cp("risorius_4", "muscle", _LMC, 0.25, -0.03),
+            _cp("platysma_fold", "wrinkle", _LMC, 0.05, -0.08),
+            _cp("nasolabial_lower", "wrinkle", _LMC, 0.08, 0.06),
+            _cp("upper_lip_lateral", "muscle", {_LMC: 0.5, _ULO: 0.5}),
+            _cp("lower_lip_lateral", "muscle", {_LMC: 0.5, _LLO: 0.5}),
+            _cp("chin_lateral", "muscle", {_LMC: 0.5, _CM: 0.5}),
+            _cp("upper_lip_middle", "muscle", _ULO, side="C"),
+            _cp("lower_lip_middle", "muscle", _LLO, side="C"),
+            _cp("chin_middle", "muscle", _CM, side="C"),
+        ),
+        _LOWER_FIXED,
+        0.35,
+    ),
 }
 
 SUPPORTED_AUS: tuple[int, ...] = tuple(sorted(AU_LAYOUTS))
@@ -330,8 +408,10 @@ def parse_au(au) -> tuple[int, str | None]:
             raise RigError(f"cannot read the action unit {au!r}; use e.g. 12, '12L', 'AU4'.")
         num, side = int(m.group(1)), (m.group(2) or None)
     if num not in AU_LAYOUTS:
-        raise RigError(f"AU{num} is not covered by the Erdoğdu method; supported: "
-                       f"{', '.join(f'AU{a}' for a in SUPPORTED_AUS)}.")
+        raise RigError(
+            f"AU{num} is not covered by the Erdoğdu method; supported: "
+            f"{', '.join(f'AU{a}' for a in SUPPORTED_AUS)}."
+        )
     return num, side
 
 
@@ -403,11 +483,14 @@ def as_face(obj, landmarks: Landmarks | None = None, name: str | None = None) ->
         v, lm, nm = obj, landmarks, name or "vertices"
     v = np.asarray(v, dtype=np.float64)
     if v.ndim != 2 or v.shape[1] != 3 or len(v) < 4 or not np.all(np.isfinite(v)):
-        raise ScanFormatError(f"{nm}: face vertices must be a finite (V >= 4, 3) array in mm, got "
-                              f"shape {v.shape}.")
+        raise ScanFormatError(
+            f"{nm}: face vertices must be a finite (V >= 4, 3) array in mm, got shape {v.shape}."
+        )
     if lm is None:
-        raise LandmarkError(f"{nm}: no landmarks; pass (mesh, Landmarks) or a Scan loaded with its "
-                            f".lm3 file.", missing=FACE_LABELS)
+        raise LandmarkError(
+            f"{nm}: no landmarks; pass (mesh, Landmarks) or a Scan loaded with its .lm3 file.",
+            missing=FACE_LABELS,
+        )
     return Face(v, None if tri is None else np.asarray(tri, dtype=np.int64), lm, nm)
 
 
@@ -444,8 +527,14 @@ def face_frame(landmarks: Landmarks) -> FaceFrame:
     Raises:
         LandmarkError: any of the four eye corners or two mouth corners missing.
     """
-    need = ("Outer left eye corner", "Inner left eye corner", "Inner right eye corner",
-            "Outer right eye corner", "Left mouth corner", "Right mouth corner")
+    need = (
+        "Outer left eye corner",
+        "Inner left eye corner",
+        "Inner right eye corner",
+        "Outer right eye corner",
+        "Left mouth corner",
+        "Right mouth corner",
+    )
     lm = landmarks.require(need)
     ole, ile, ire, ore, lmc, rmc = (np.asarray(lm[n]) for n in need)
     eye = (ole + ile + ire + ore) / 4
@@ -453,15 +542,18 @@ def face_frame(landmarks: Landmarks) -> FaceFrame:
     x = ole - ore
     D = float(np.linalg.norm(x))
     if D <= 0:
-        raise LandmarkError("the outer eye corners coincide; cannot build the face frame",
-                            missing=())
+        raise LandmarkError(
+            "the outer eye corners coincide; cannot build the face frame", missing=()
+        )
     x = x / D
     y = eye - mouth
     y = y - (y @ x) * x
     ny = np.linalg.norm(y)
     if ny <= 1e-9 * D:
-        raise LandmarkError("eye and mouth midpoints are aligned with the eye axis; cannot build "
-                            "the face frame", missing=())
+        raise LandmarkError(
+            "eye and mouth midpoints are aligned with the eye axis; cannot build the face frame",
+            missing=(),
+        )
     y = y / ny
     z = np.cross(x, y)
     return FaceFrame(eye, np.stack([x, y, z]), D, 0.0, float((mouth - eye) @ y))
@@ -472,7 +564,9 @@ def face_frame(landmarks: Landmarks) -> FaceFrame:
 # ---------------------------------------------------------------------------------------------
 
 
-def _project_frontmost(face: Face, frame: FaceFrame, points: np.ndarray, radius: float) -> np.ndarray:
+def _project_frontmost(
+    face: Face, frame: FaceFrame, points: np.ndarray, radius: float
+) -> np.ndarray:
     """Index of the frontmost (largest frame z) vertex within ``radius`` mm of the line
     through each point along frame z; grows the radius up to 8x if nothing is found."""
     loc = frame.local(face.vertices)
@@ -505,16 +599,20 @@ def _snap(face: Face, points: np.ndarray, mode: str) -> np.ndarray:
     return np.einsum("kj,kjd->kd", bary, face.vertices[face.triangles[tri]])
 
 
-def _landmark_tps(src: Landmarks, dst: Landmarks, reg: float, what: str, still: np.ndarray | None = None):
+def _landmark_tps(
+    src: Landmarks, dst: Landmarks, reg: float, what: str, still: np.ndarray | None = None
+):
     """TPS on the landmarks common to both (matched by label), plus optional ``still`` (n, 3)
     mm points mapped to themselves."""
     from .rbf import fit_numpy
 
     common = [n for n in src.names if n in dst]
     if len(common) < 5:
-        raise LandmarkError(f"{what}: only {len(common)} landmarks in common ({common}); the TPS "
-                            f"needs at least 5 non-coplanar ones (ideally the 22 Bosphorus landmarks).",
-                            missing=[n for n in FACE_LABELS if n not in common])
+        raise LandmarkError(
+            f"{what}: only {len(common)} landmarks in common ({common}); the TPS "
+            f"needs at least 5 non-coplanar ones (ideally the 22 Bosphorus landmarks).",
+            missing=[n for n in FACE_LABELS if n not in common],
+        )
     try:
         a, b = src.array(common), dst.array(common)
         if still is not None and len(still):
@@ -529,8 +627,9 @@ def _landmark_tps(src: Landmarks, dst: Landmarks, reg: float, what: str, still: 
 # ---------------------------------------------------------------------------------------------
 
 
-def place_control_points(face, au, *, landmarks: Landmarks | None = None,
-                         radius: float = 0.02) -> tuple[tuple[ControlPoint, ...], np.ndarray]:
+def place_control_points(
+    face, au, *, landmarks: Landmarks | None = None, radius: float = 0.02
+) -> tuple[tuple[ControlPoint, ...], np.ndarray]:
     """Place an AU's control points on a neutral face (the thesis places them once, on the
     source neutral).
 
@@ -550,15 +649,20 @@ def place_control_points(face, au, *, landmarks: Landmarks | None = None,
     layout = AU_LAYOUTS[num]
     miss = face.landmarks.missing(layout.landmarks_used)
     if miss:
-        raise LandmarkError(f"{face.name}: AU{num} control points need landmark(s) {list(miss)}, "
-                            f"which are missing.", missing=miss)
+        raise LandmarkError(
+            f"{face.name}: AU{num} control points need landmark(s) {list(miss)}, "
+            f"which are missing.",
+            missing=miss,
+        )
     frame = face_frame(face.landmarks)
     pts = layout.expanded()
     raw = np.empty((len(pts), 3))
     for k, cp in enumerate(pts):
         base = sum(w * np.asarray(face.landmarks[l]) for l, w in cp.base)
         sgn = -1.0 if cp.side == "R" else 1.0
-        raw[k] = base + frame.size * (sgn * cp.offset[0] * frame.axes[0] + cp.offset[1] * frame.axes[1])
+        raw[k] = base + frame.size * (
+            sgn * cp.offset[0] * frame.axes[0] + cp.offset[1] * frame.axes[1]
+        )
     idx = _project_frontmost(face, frame, raw, radius * frame.size)
     # distinct vertices: duplicates would make the TPS singular
     _, first = np.unique(idx, return_index=True)
@@ -632,8 +736,15 @@ class Animation:
         return self.neutral + float(m) * self._unit_field
 
 
-def _region_anchors(face: Face, frame: FaceFrame, region: str, controls: np.ndarray, influence: float,
-                    spacing: float, border_fraction: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _region_anchors(
+    face: Face,
+    frame: FaceFrame,
+    region: str,
+    controls: np.ndarray,
+    influence: float,
+    spacing: float,
+    border_fraction: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Region mask, influence-zone distance and anchor points (see the module doc)."""
     loc = frame.local(face.vertices)
     hb = frame.border_height(border_fraction)
@@ -668,10 +779,23 @@ def _thin(points: np.ndarray, spacing: float) -> np.ndarray:
     return cand[taken]
 
 
-def animate(source_neutral, source_au_scan, target_neutral, au, m: float = 1.0, *,
-            snap: str = "vertex", align: bool = True, influence: float | None = None,
-            anchor_spacing: float = 0.06, border_fraction: float = 0.12, reorient: bool = False,
-            upper_scale: str | None = None, reg: float = 0.0, source_anchors: bool = True) -> Animation:
+def animate(
+    source_neutral,
+    source_au_scan,
+    target_neutral,
+    au,
+    m: float = 1.0,
+    *,
+    snap: str = "vertex",
+    align: bool = True,
+    influence: float | None = None,
+    anchor_spacing: float = 0.06,
+    border_fraction: float = 0.12,
+    reorient: bool = False,
+    upper_scale: str | None = None,
+    reg: float = 0.0,
+    source_anchors: bool = True,
+) -> Animation:
     """Animate ``target_neutral`` with action unit ``au`` copied from a source subject
     (Erdoğdu 2010, eqs. 5.5-5.10; see the module doc for the steps and our design choices).
 
@@ -720,11 +844,15 @@ def animate(source_neutral, source_au_scan, target_neutral, au, m: float = 1.0, 
     for f in (sn, se, tn):
         miss = f.landmarks.missing(FACE_LABELS)
         if miss:
-            notes.append(f"{f.name}: landmark(s) {list(miss)} missing; the landmark TPS uses the others")
+            notes.append(
+                f"{f.name}: landmark(s) {list(miss)} missing; the landmark TPS uses the others"
+            )
     info = getattr(source_au_scan, "info", None)
     if info is not None and info.aus and num not in info.au_numbers:
-        warnings.warn(f"{se.name} is labelled {info.code}, not AU{num}; animating AU{num} anyway",
-                      stacklevel=2)
+        warnings.warn(
+            f"{se.name} is labelled {info.code}, not AU{num}; animating AU{num} anyway",
+            stacklevel=2,
+        )
     if upper_scale not in (None, "eyes"):
         raise RigError(f"upper_scale must be None or 'eyes', got {upper_scale!r}")
 
@@ -737,13 +865,22 @@ def animate(source_neutral, source_au_scan, target_neutral, au, m: float = 1.0, 
             rej = np.zeros(len(sn.vertices), bool)
             rej[np.asarray(mesh_n.boundary_edges, dtype=np.int64).ravel()] = True
             T_align, _, icp_info, more = align_points(
-                se.vertices, se.landmarks, sn.vertices, mesh_n.vertex_normals, sn.landmarks,
-                fixed_reject=rej)
+                se.vertices,
+                se.landmarks,
+                sn.vertices,
+                mesh_n.vertex_normals,
+                sn.landmarks,
+                fixed_reject=rej,
+            )
             notes += more
         else:
             T_align, _ = align_landmarks(se.landmarks, sn.landmarks)
-        se = Face(T_align.apply(se.vertices), se.triangles,
-                  se.landmarks.transformed(T_align.rotation * T_align.scale, T_align.translation), se.name)
+        se = Face(
+            T_align.apply(se.vertices),
+            se.triangles,
+            se.landmarks.transformed(T_align.rotation * T_align.scale, T_align.translation),
+            se.name,
+        )
 
     # 1. control points on the source neutral
     cps, idx = place_control_points(sn, num)
@@ -757,8 +894,9 @@ def animate(source_neutral, source_au_scan, target_neutral, au, m: float = 1.0, 
     #    source_anchors, the source's own border/shell anchors are held still in this TPS
     extra = np.zeros((0, 3))
     if source_anchors:
-        _, _, extra = _region_anchors(sn, fs, layout.region, P, influence * fs.size,
-                                      anchor_spacing * fs.size, border_fraction)
+        _, _, extra = _region_anchors(
+            sn, fs, layout.region, P, influence * fs.size, anchor_spacing * fs.size, border_fraction
+        )
         common = [n for n in sn.landmarks.names if n in se.landmarks]
         if len(extra) and common:
             lm_pts = np.concatenate([sn.landmarks.array(common), P])
@@ -789,10 +927,14 @@ def animate(source_neutral, source_au_scan, target_neutral, au, m: float = 1.0, 
 
     # 5. region warp with anchors (eq. 5.9), at m = 1; the result is linear in m
     D = ft.size
-    in_region, dist, anchors = _region_anchors(tn, ft, layout.region, Q, influence * D,
-                                               anchor_spacing * D, border_fraction)
-    fixed = [tn.vertices[tn.tree().query(np.asarray(tn.landmarks[l]))[1]]
-             for l in layout.fixed_landmarks if l in tn.landmarks]
+    in_region, dist, anchors = _region_anchors(
+        tn, ft, layout.region, Q, influence * D, anchor_spacing * D, border_fraction
+    )
+    fixed = [
+        tn.vertices[tn.tree().query(np.asarray(tn.landmarks[l]))[1]]
+        for l in layout.fixed_landmarks
+        if l in tn.landmarks
+    ]
     if fixed:
         anchors = np.concatenate([anchors, np.asarray(fixed)])
     if len(anchors):
@@ -811,11 +953,25 @@ def animate(source_neutral, source_au_scan, target_neutral, au, m: float = 1.0, 
         field_[sel] = d * w[:, None]
     out = tn.vertices + float(m) * field_
     return Animation(
-        vertices=out, triangles=tn.triangles, neutral=tn.vertices.copy(), au=num, side=side,
-        magnitude=float(m), region=layout.region, region_mask=in_region, moved_mask=sel,
-        control_names=names, control_source=P, control_target=Q, displacement=v,
-        control_active=active, anchors=anchors, scale=scale, source_alignment=T_align,
-        notes=tuple(notes), _unit_field=field_,
+        vertices=out,
+        triangles=tn.triangles,
+        neutral=tn.vertices.copy(),
+        au=num,
+        side=side,
+        magnitude=float(m),
+        region=layout.region,
+        region_mask=in_region,
+        moved_mask=sel,
+        control_names=names,
+        control_source=P,
+        control_target=Q,
+        displacement=v,
+        control_active=active,
+        anchors=anchors,
+        scale=scale,
+        source_alignment=T_align,
+        notes=tuple(notes),
+        _unit_field=field_,
     )
 
 
@@ -856,8 +1012,9 @@ def resample_grid(scan, size: int = 150):
     xyz = np.stack([X, Y, Z], -1)
     valid = np.isfinite(Z)
     lm = scan.landmarks
-    out = Scan.from_grid(np.where(valid[..., None], xyz, 0.0), valid, image_name=scan.image_name,
-                         path=scan.path)
+    out = Scan.from_grid(
+        np.where(valid[..., None], xyz, 0.0), valid, image_name=scan.image_name, path=scan.path
+    )
     if lm is not None:
         tree = cKDTree(out.points)
         lm = lm.with_positions(out.points[tree.query(np.asarray(lm.positions))[1]])
@@ -865,8 +1022,14 @@ def resample_grid(scan, size: int = 150):
     return out
 
 
-def fit_magnitude(animation: Animation, target_points: np.ndarray, *, mask: np.ndarray | None = None,
-                  bounds: tuple[float, float] = (0.0, 2.0), cap_mm: float | None = None) -> tuple[float, float]:
+def fit_magnitude(
+    animation: Animation,
+    target_points: np.ndarray,
+    *,
+    mask: np.ndarray | None = None,
+    bounds: tuple[float, float] = (0.0, 2.0),
+    cap_mm: float | None = None,
+) -> tuple[float, float]:
     """Oracle magnitude (baseline B3 of the notes): the ``m`` minimising the mean distance
     from the moved vertices of ``animation`` to the nearest of ``target_points`` (mm, same
     frame), by bounded 1-D search.

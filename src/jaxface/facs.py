@@ -88,8 +88,9 @@ AU_JAW: dict[str, tuple[float, float, float]] = {
 #: AUs of the cheek puff (air pressure; value = puff at intensity 1).
 AU_PUFF = {"AU33": 1.0, "AU34": 1.0}
 
-AU_NAMES: tuple[str, ...] = tuple(sorted(set(AU_MUSCLES) | set(AU_JAW) | set(AU_PUFF),
-                                         key=lambda s: int(s[2:])))
+AU_NAMES: tuple[str, ...] = tuple(
+    sorted(set(AU_MUSCLES) | set(AU_JAW) | set(AU_PUFF), key=lambda s: int(s[2:]))
+)
 
 #: Emotion prototypes (Ekman & Friesen): AU -> intensity.
 EMOTIONS: dict[str, dict[str, float]] = {
@@ -211,7 +212,11 @@ def aus_to_controls(aus: dict, muscle_names):
                 j[1] = -j[1]
             jaw += v * j
         puff += v * AU_PUFF.get(base, 0.0)
-    return np.clip(a, 0.0, 1.0), JawPose(float(jaw[0]), float(jaw[1]), float(jaw[2])), float(min(puff, 1.0))
+    return (
+        np.clip(a, 0.0, 1.0),
+        JawPose(float(jaw[0]), float(jaw[1]), float(jaw[2])),
+        float(min(puff, 1.0)),
+    )
 
 
 def emotion_controls(name: str, muscle_names, intensity: float = 1.0):
@@ -224,6 +229,7 @@ def emotion_controls(name: str, muscle_names, intensity: float = 1.0):
 
 def sort_aus(values: dict) -> dict:
     """``{AU: value}`` ordered by AU number, a side after its bilateral AU (AU12, AU12L, AU12R)."""
+
     def key(k):
         m = _AU_RE.match(k)
         return (int(m.group(1)), m.group(2) or "")
@@ -269,7 +275,9 @@ def au_decomposition(activations, muscle_names) -> tuple[list[str], np.ndarray, 
     return aus, np.clip(x, 0.0, 1.0), A
 
 
-def au_intensities(activations, muscle_names, jaw=None, *, cheek_puff: float = 0.0) -> dict[str, float]:
+def au_intensities(
+    activations, muscle_names, jaw=None, *, cheek_puff: float = 0.0
+) -> dict[str, float]:
     """Read AU intensities out of muscle activations (and a jaw pose): the inverse of the table.
 
     Muscle AUs: non-negative least squares ``min_i |A^T i - a|``, ``i >= 0`` over the
@@ -308,7 +316,9 @@ def _au_dict(aus, values, jaw=None, cheek_puff: float = 0.0) -> dict[str, float]
         y = float(np.asarray(jaw.yaw_deg))
         q = float(np.asarray(jaw.protrusion_mm))
         out["AU26"] = float(np.clip(p / AU_JAW["AU26"][0], 0.0, 1.0))
-        out["AU27"] = float(np.clip((p - AU_JAW["AU26"][0]) / (AU_JAW["AU27"][0] - AU_JAW["AU26"][0]), 0.0, 1.0))
+        out["AU27"] = float(
+            np.clip((p - AU_JAW["AU26"][0]) / (AU_JAW["AU27"][0] - AU_JAW["AU26"][0]), 0.0, 1.0)
+        )
         out["AU29"] = float(np.clip(q / AU_JAW["AU29"][2], 0.0, 1.0))
         out["AU30L"] = float(np.clip(y / AU_JAW["AU30"][1], 0.0, 1.0))
         out["AU30R"] = float(np.clip(-y / AU_JAW["AU30"][1], 0.0, 1.0))

@@ -59,16 +59,16 @@ EYE_RADIUS = 12.0
 
 # ----------------------------------------------------------------------------- design values (mm)
 # eyes (left = +x); the right side mirrors x
-_EYE_CENTER = np.array([31.5, 33.6, 82.5])     # eyeball centre
-_LID_SHELL = 1.8                              # lid skin shell outside the eyeball, at the fissure
-_CANTHUS_IN = np.array([18.4, 32.6])          # (x, y) inner eye corner
-_CANTHUS_OUT = np.array([44.6, 34.3])         # (x, y) outer eye corner
-_LID_UP = 6.3                                 # upper lid margin above the canthal line (max)
-_LID_LO = 3.9                                 # lower lid margin below the canthal line (max)
+_EYE_CENTER = np.array([31.5, 33.6, 82.5])  # eyeball centre
+_LID_SHELL = 1.8  # lid skin shell outside the eyeball, at the fissure
+_CANTHUS_IN = np.array([18.4, 32.6])  # (x, y) inner eye corner
+_CANTHUS_OUT = np.array([44.6, 34.3])  # (x, y) outer eye corner
+_LID_UP = 6.3  # upper lid margin above the canthal line (max)
+_LID_LO = 3.9  # lower lid margin below the canthal line (max)
 # mouth
-_MOUTH_CORNER = np.array([25.3, -35.2])       # (x, y) left mouth corner
-_MOUTH_MID_Y = -33.6                          # slit height at the midline
-_MOUTH_GAP = 0.76                             # closed-mouth gap between the lip edges at x = 0
+_MOUTH_CORNER = np.array([25.3, -35.2])  # (x, y) left mouth corner
+_MOUTH_MID_Y = -33.6  # slit height at the midline
+_MOUTH_GAP = 0.76  # closed-mouth gap between the lip edges at x = 0
 # neck cut
 _NECK_Y = -118.0
 
@@ -88,7 +88,7 @@ def _smax(a, b, k):
     """Polynomial smooth maximum with blend width ``k`` (mm)."""
     with np.errstate(invalid="ignore"):
         gap = np.abs(a - b)
-    gap = np.where(np.isnan(gap), np.inf, gap)        # both -inf: no blend
+    gap = np.where(np.isnan(gap), np.inf, gap)  # both -inf: no blend
     h = np.clip(k - gap, 0.0, None) / k
     return np.maximum(a, b) + h * h * k * 0.25
 
@@ -98,18 +98,146 @@ def _gauss(x, y, cx, cy, sx, sy):
 
 
 # ----------------------------------------------------------------------------- base loft
-_Y_TAB = np.array([-135, -118, -104, -95, -88, -82, -77, -71, -65, -59, -50, -41, -32, -23, -14,
-                   -5, 5, 15, 25, 35, 45, 55, 65], dtype=np.float64)
-_ZF_TAB = np.array([47, 47.5, 50, 55, 63, 80, 94, 101.5, 105, 106.3, 106.5, 107.3, 107.8, 107.8,
-                    106.5, 104.5, 103.5, 103.5, 104, 105, 105.8, 106, 105.5])
-_ZB_TAB = np.array([-62, -62, -61.5, -60.5, -59.8, -59.2, -58.7, -58.2, -57.8, -57.4, -57.2, -57.5,
-                    -59, -61.5, -65, -69.5, -74.5, -79.5, -83.2, -85.6, -86.8, -87.2, -86.6])
-_W_TAB = np.array([58, 57, 55.5, 55, 55, 55.2, 55.8, 56.8, 58, 59.3, 61.2, 63.6, 66.5, 69.5, 72,
-                   74, 75.5, 76.7, 77.7, 78.5, 79, 79, 78.6])
-_ZC_TAB = np.array([-7, -7, -6.5, -5.5, -4, -2, 0, 3, 6, 9, 12, 13.5, 13, 10, 6, 3, 1, 0, 0, 0, 0,
-                    0, 0], dtype=np.float64)
-_NF_TAB = np.array([2.0, 2.0, 2.0, 2.0, 2.0, 1.97, 1.93, 1.9, 1.9, 1.9, 1.9, 1.95, 2.0, 2.05, 2.15,
-                    2.3, 2.4, 2.5, 2.5, 2.45, 2.3, 2.15, 2.1])
+_Y_TAB = np.array(
+    [
+        -135,
+        -118,
+        -104,
+        -95,
+        -88,
+        -82,
+        -77,
+        -71,
+        -65,
+        -59,
+        -50,
+        -41,
+        -32,
+        -23,
+        -14,
+        -5,
+        5,
+        15,
+        25,
+        35,
+        45,
+        55,
+        65,
+    ],
+    dtype=np.float64,
+)
+_ZF_TAB = np.array(
+    [
+        47,
+        47.5,
+        50,
+        55,
+        63,
+        80,
+        94,
+        101.5,
+        105,
+        106.3,
+        106.5,
+        107.3,
+        107.8,
+        107.8,
+        106.5,
+        104.5,
+        103.5,
+        103.5,
+        104,
+        105,
+        105.8,
+        106,
+        105.5,
+    ]
+)
+_ZB_TAB = np.array(
+    [
+        -62,
+        -62,
+        -61.5,
+        -60.5,
+        -59.8,
+        -59.2,
+        -58.7,
+        -58.2,
+        -57.8,
+        -57.4,
+        -57.2,
+        -57.5,
+        -59,
+        -61.5,
+        -65,
+        -69.5,
+        -74.5,
+        -79.5,
+        -83.2,
+        -85.6,
+        -86.8,
+        -87.2,
+        -86.6,
+    ]
+)
+_W_TAB = np.array(
+    [
+        58,
+        57,
+        55.5,
+        55,
+        55,
+        55.2,
+        55.8,
+        56.8,
+        58,
+        59.3,
+        61.2,
+        63.6,
+        66.5,
+        69.5,
+        72,
+        74,
+        75.5,
+        76.7,
+        77.7,
+        78.5,
+        79,
+        79,
+        78.6,
+    ]
+)
+_ZC_TAB = np.array(
+    [-7, -7, -6.5, -5.5, -4, -2, 0, 3, 6, 9, 12, 13.5, 13, 10, 6, 3, 1, 0, 0, 0, 0, 0, 0],
+    dtype=np.float64,
+)
+_NF_TAB = np.array(
+    [
+        2.0,
+        2.0,
+        2.0,
+        2.0,
+        2.0,
+        1.97,
+        1.93,
+        1.9,
+        1.9,
+        1.9,
+        1.9,
+        1.95,
+        2.0,
+        2.05,
+        2.15,
+        2.3,
+        2.4,
+        2.5,
+        2.5,
+        2.45,
+        2.3,
+        2.15,
+        2.1,
+    ]
+)
 _NB = 2.15
 _DOME_Y0 = 65.0
 _DOME_TOP = 145.0
@@ -118,7 +246,7 @@ _DOME_TOP = 145.0
 def _cranium(y):
     """Cranial dome above y = 65 mm: (w, zf, zb, zc) shrinking to the vertex at y = 145."""
     t = np.clip((y - _DOME_Y0) / (_DOME_TOP - _DOME_Y0), 0.0, 1.0)
-    w = _W_TAB[-1] * np.sqrt(np.clip(1.0 - t ** 2.5, 0.0, None))
+    w = _W_TAB[-1] * np.sqrt(np.clip(1.0 - t**2.5, 0.0, None))
     s = np.sqrt(np.clip(1.0 - t * t, 0.0, None))
     zf = _ZF_TAB[-1] * s
     zb = _ZB_TAB[-1] * s
@@ -135,8 +263,13 @@ def _make_profiles(step: float = 0.25):
     cols = []
     # smoothing splines (the design values are hand-set: smoothing removes curvature ripples
     # that would show as bands in the shading); the front profile is kept close (chin)
-    for a, b, lam in ((_W_TAB, w, 50.0), (_ZF_TAB, zf, 2.0), (_ZB_TAB, zb, 50.0),
-                      (_ZC_TAB, np.zeros(3), 50.0), (_NF_TAB, np.full(3, _NF_TAB[-1]), 50.0)):
+    for a, b, lam in (
+        (_W_TAB, w, 50.0),
+        (_ZF_TAB, zf, 2.0),
+        (_ZB_TAB, zb, 50.0),
+        (_ZC_TAB, np.zeros(3), 50.0),
+        (_NF_TAB, np.full(3, _NF_TAB[-1]), 50.0),
+    ):
         cols.append(make_smoothing_spline(y, np.concatenate([a, b]), lam=lam)(grid))
     return grid, np.stack(cols)
 
@@ -162,7 +295,7 @@ def _base_level(p: np.ndarray) -> np.ndarray:
     n = np.where(front, nf, _NB)
     u = np.abs(x) / np.maximum(w, 1e-9)
     v = np.abs(z - zc) / np.maximum(depth, 1e-9)
-    g = (u ** n + v ** n) ** (1.0 / n) - 1.0
+    g = (u**n + v**n) ** (1.0 / n) - 1.0
     return np.where(y > _DOME_TOP, 1.0 + (y - _DOME_TOP), g)
 
 
@@ -229,7 +362,7 @@ def _skew_bump(s, peak, order: float = 1.7):
     a = order * peak
     b = order * (1.0 - peak)
     s = np.clip(s, 0.0, 1.0)
-    return (s ** a) * ((1.0 - s) ** b) / (peak ** a * (1.0 - peak) ** b)
+    return (s**a) * ((1.0 - s) ** b) / (peak**a * (1.0 - peak) ** b)
 
 
 def _mouth_line(x):
@@ -251,32 +384,34 @@ def _relief_z(x, y):
     # ---- forehead and brow ridge (the ridge lies just below the eyebrow arch)
     ridge = np.exp(-0.5 * ((y - (_brow_line(np.maximum(ax, 14.0)) - 4.0)) / 5.5) ** 2)
     d += 1.8 * ridge * _smoothstep(64.0, 50.0, ax)
-    d += 0.6 * _gauss(ax, y, 0.0, 47.0, 10.0, 6.0)                       # glabella
-    d -= 0.5 * _gauss(ax, y, 0.0, 38.5, 7.0, 3.0)                        # nasion
+    d += 0.6 * _gauss(ax, y, 0.0, 47.0, 10.0, 6.0)  # glabella
+    d -= 0.5 * _gauss(ax, y, 0.0, 38.5, 7.0, 3.0)  # nasion
 
     # ---- eye sockets (the lid shells are added afterwards with a smooth max)
     d -= 10.0 * _gauss(ax, y, 30.0, 34.0, 12.0, 7.5)
-    d -= 3.5 * _gauss(ax, y, 18.0, 32.5, 4.5, 4.0)                       # medial canthus
-    d += 1.2 * _gauss(ax, y, 34.0, 21.0, 13.0, 3.5)                      # infra-orbital rim
+    d -= 3.5 * _gauss(ax, y, 18.0, 32.5, 4.5, 4.0)  # medial canthus
+    d += 1.2 * _gauss(ax, y, 34.0, 21.0, 13.0, 3.5)  # infra-orbital rim
     crease_y = _lid_margin_curves(np.clip(ax, _CANTHUS_IN[0], _CANTHUS_OUT[0]))[1] + 6.5
     on = _smoothstep(_CANTHUS_IN[0] - 2.0, _CANTHUS_IN[0] + 4.0, ax) * _smoothstep(
-        _CANTHUS_OUT[0] + 4.0, _CANTHUS_OUT[0] - 2.0, ax)
-    d -= 1.2 * on * np.exp(-0.5 * ((y - crease_y) / 1.3) ** 2)           # upper lid crease
+        _CANTHUS_OUT[0] + 4.0, _CANTHUS_OUT[0] - 2.0, ax
+    )
+    d -= 1.2 * on * np.exp(-0.5 * ((y - crease_y) / 1.3) ** 2)  # upper lid crease
 
     # ---- cheeks
-    d += 3.0 * _gauss(ax, y, 48.0, 15.0, 11.0, 9.0)                      # cheekbone
-    d += 2.8 * _gauss(ax, y, 33.0, 4.0, 11.0, 10.0)                      # malar fat
-    d -= 1.0 * _gauss(ax, y, 53.0, -20.0, 9.0, 11.0)                     # buccal hollow
+    d += 3.0 * _gauss(ax, y, 48.0, 15.0, 11.0, 9.0)  # cheekbone
+    d += 2.8 * _gauss(ax, y, 33.0, 4.0, 11.0, 10.0)  # malar fat
+    d -= 1.0 * _gauss(ax, y, 53.0, -20.0, 9.0, 11.0)  # buccal hollow
 
     # ---- mouth: the muzzle over the dental arch, then lips, philtrum and folds
     d += 8.3 * np.exp(-((ax / 27.0) ** 2.6) - ((y + 28.5) / 16.5) ** 6)
     d += _lips(ax, y)
-    t = np.clip((y + 1.0) / (-38.0 + 1.0), 0.0, 1.0)                     # nasolabial fold
+    t = np.clip((y + 1.0) / (-38.0 + 1.0), 0.0, 1.0)  # nasolabial fold
     fold_x = 22.0 + 9.5 * t + 2.0 * np.sin(np.pi * t)
     fold_on = _smoothstep(3.0, -5.0, y) * _smoothstep(-46.0, -36.0, y)
     dist = ax - fold_x
-    d += fold_on * (1.0 * np.exp(-0.5 * ((dist - 3.5) / 3.5) ** 2)
-                    - 0.7 * np.exp(-0.5 * (dist / 1.5) ** 2))
+    d += fold_on * (
+        1.0 * np.exp(-0.5 * ((dist - 3.5) / 3.5) ** 2) - 0.7 * np.exp(-0.5 * (dist / 1.5) ** 2)
+    )
 
     # ---- chin and mentolabial sulcus
     d -= 1.8 * _gauss(ax, y, 0.0, -50.0, 12.0, 3.0)
@@ -297,10 +432,52 @@ def _nose_z(x, y):
     tip lobule, columella and alae, blended by smooth maxima (creases at the alar grooves)."""
     ax = np.abs(x)
     # dorsum ridge: height profile and a rounded cross-section (ridge radius ~3.5 mm)
-    yy = np.array([41.0, 39.5, 38.0, 36.0, 33.0, 30.0, 27.0, 24.0, 21.0, 18.0, 15.0, 12.0, 9.0, 6.0,
-                   3.0, 0.0, -3.0, -6.0, -9.0])
-    zz = np.array([100.0, 104.0, 106.5, 107.8, 109.9, 112.6, 115.0, 117.2, 119.2, 121.3, 123.6,
-                   125.4, 126.6, 126.8, 125.5, 123.0, 119.0, 114.0, 108.0])
+    yy = np.array(
+        [
+            41.0,
+            39.5,
+            38.0,
+            36.0,
+            33.0,
+            30.0,
+            27.0,
+            24.0,
+            21.0,
+            18.0,
+            15.0,
+            12.0,
+            9.0,
+            6.0,
+            3.0,
+            0.0,
+            -3.0,
+            -6.0,
+            -9.0,
+        ]
+    )
+    zz = np.array(
+        [
+            100.0,
+            104.0,
+            106.5,
+            107.8,
+            109.9,
+            112.6,
+            115.0,
+            117.2,
+            119.2,
+            121.3,
+            123.6,
+            125.4,
+            126.6,
+            126.8,
+            125.5,
+            123.0,
+            119.0,
+            114.0,
+            108.0,
+        ]
+    )
     zd = np.interp(-y, -yy, zz, left=-np.inf, right=-np.inf)
     slope = np.interp(-y, -yy, np.linspace(1.6, 1.15, len(yy)))
     rho = 9.0
@@ -315,15 +492,19 @@ def _nose_z(x, y):
     return z
 
 
-_LOWER_LIP_BORDER = 10.0       # mm from the slit down to the lower vermilion border (midline)
+_LOWER_LIP_BORDER = 10.0  # mm from the slit down to the lower vermilion border (midline)
 
 
 def _upper_vermilion_border(ax):
     """Height (mm) of the upper lip's vermilion border (cupid's bow) at |x|, descending toward
     the mouth corners."""
     xc = _MOUTH_CORNER[0]
-    return (-25.2 + 1.0 * np.exp(-0.5 * ((ax - 4.8) / 2.2) ** 2)
-            - 0.7 * np.exp(-0.5 * (ax / 1.6) ** 2) - 7.5 * (np.minimum(ax, xc) / xc) ** 2)
+    return (
+        -25.2
+        + 1.0 * np.exp(-0.5 * ((ax - 4.8) / 2.2) ** 2)
+        - 0.7 * np.exp(-0.5 * (ax / 1.6) ** 2)
+        - 7.5 * (np.minimum(ax, xc) / xc) ** 2
+    )
 
 
 def _lips(ax, y):
@@ -331,16 +512,18 @@ def _lips(ax, y):
     philtrum, lower lip, and the inward roll of both lips at the closed slit."""
     xc = _MOUTH_CORNER[0]
     slit = _mouth_line(np.minimum(ax, xc))
-    wl = _smoothstep(xc + 2.0, xc - 8.0, ax)                              # lateral fade
+    wl = _smoothstep(xc + 2.0, xc - 8.0, ax)  # lateral fade
     border = _upper_vermilion_border(ax)
     up_t = np.clip((y - slit) / np.maximum(border - slit, 1.0), 0.0, 1.0)
-    upper = 1.9 * np.sin(np.pi * up_t ** 0.8) * (y >= slit)
-    upper += 0.5 * np.exp(-0.5 * ((y - border) / 0.9) ** 2)              # white roll
+    upper = 1.9 * np.sin(np.pi * up_t**0.8) * (y >= slit)
+    upper += 0.5 * np.exp(-0.5 * ((y - border) / 0.9) ** 2)  # white roll
     phil = _smoothstep(-12.5, -15.5, y) * _smoothstep(border, border + 2.5, y)
-    upper += phil * (0.8 * np.exp(-0.5 * ((ax - 5.2) / 1.5) ** 2) - 0.5 * np.exp(-0.5 * (ax / 2.0) ** 2))
+    upper += phil * (
+        0.8 * np.exp(-0.5 * ((ax - 5.2) / 1.5) ** 2) - 0.5 * np.exp(-0.5 * (ax / 2.0) ** 2)
+    )
     # lower lip: a full roll from the slit down to ~ -46
     lo_t = np.clip((slit - y) / 13.5, 0.0, 1.0)
-    lower = 2.6 * np.sin(np.pi * lo_t ** 1.05) * (y < slit)
+    lower = 2.6 * np.sin(np.pi * lo_t**1.05) * (y < slit)
     lip = (upper + lower) * wl
     # both lips turn in at the slit: the edges sit ~4.5 mm behind the lip fronts
     dist = y - slit
@@ -348,8 +531,8 @@ def _lips(ax, y):
     return lip - roll
 
 
-_EAR_CENTER = (8.0, -4.0)      # (y, z) of the ear's centre, mm
-_EAR_TILT = np.deg2rad(15.0)   # the ear leans back
+_EAR_CENTER = (8.0, -4.0)  # (y, z) of the ear's centre, mm
+_EAR_TILT = np.deg2rad(15.0)  # the ear leans back
 
 
 def _ear_frame(y, z):
@@ -363,8 +546,10 @@ def _ear_frame(y, z):
 def _ear_point(u, v):
     """(y, z) (mm) of ear coordinates (u, v)."""
     cy, cz = _EAR_CENTER
-    return (cy + v * np.cos(_EAR_TILT) - u * np.sin(_EAR_TILT),
-            cz + v * np.sin(_EAR_TILT) + u * np.cos(_EAR_TILT))
+    return (
+        cy + v * np.cos(_EAR_TILT) - u * np.sin(_EAR_TILT),
+        cz + v * np.sin(_EAR_TILT) + u * np.cos(_EAR_TILT),
+    )
 
 
 def _relief_x(p):
@@ -374,8 +559,8 @@ def _relief_x(p):
     side = _smoothstep(45.0, 65.0, np.abs(x))
     u, v = _ear_frame(y, z)
     rr = np.sqrt((v / 30.0) ** 2 + (u / 16.5) ** 2)
-    body = (7.0 + 4.0 * np.clip(-u / 16.5, -0.5, 1.0)) * _bump(rr ** 2) ** 0.6
-    c_open = _smoothstep(0.35, -0.1, u / 16.5) + _smoothstep(-0.2, 0.3, v / 30.0)   # C-shape
+    body = (7.0 + 4.0 * np.clip(-u / 16.5, -0.5, 1.0)) * _bump(rr**2) ** 0.6
+    c_open = _smoothstep(0.35, -0.1, u / 16.5) + _smoothstep(-0.2, 0.3, v / 30.0)  # C-shape
     rim = 3.0 * np.exp(-0.5 * ((rr - 0.84) / 0.09) ** 2) * np.clip(c_open, 0.0, 1.0)
     anti = 1.6 * np.exp(-0.5 * ((rr - 0.52) / 0.08) ** 2) * _smoothstep(-0.3, 0.2, v / 30.0)
     concha = 6.5 * _gauss(u, v, 3.0, -4.0, 5.5, 7.0)
@@ -393,7 +578,7 @@ def _skin_from_base(p0: np.ndarray) -> np.ndarray:
     zf = z + front * _relief_z(x, y)
     on_face = front > 0.99
     zf = np.where(on_face, _smax(zf, _nose_z(x, y), 3.5), zf)
-    zf -= front * 2.0 * _gauss(np.abs(x), y, 6.5, -9.0, 2.2, 1.5)        # nostrils
+    zf -= front * 2.0 * _gauss(np.abs(x), y, 6.5, -9.0, 2.2, 1.5)  # nostrils
     # lids: smooth maximum of the socket surface and a shell around each eyeball
     for sx in (1.0, -1.0):
         c = _EYE_CENTER * np.array([sx, 1.0, 1.0])
@@ -419,7 +604,7 @@ def _front_base_z(x, y):
     nf = np.where(low, nf, _NF_TAB[-1])
     u = np.abs(x) / np.maximum(w, 1e-9)
     with np.errstate(invalid="ignore"):
-        return zc + (zf - zc) * (1.0 - u ** nf) ** (1.0 / nf)
+        return zc + (zf - zc) * (1.0 - u**nf) ** (1.0 / nf)
 
 
 def _skin_xy(x, y) -> np.ndarray:
@@ -443,8 +628,13 @@ def _relax_front(vertices, triangles, movable, iters: int = 16, step: float = 0.
     e = np.unique(np.sort(e, axis=1), axis=0)
     import scipy.sparse as sp
 
-    A = sp.coo_matrix((np.ones(2 * len(e)), (np.concatenate([e[:, 0], e[:, 1]]),
-                                              np.concatenate([e[:, 1], e[:, 0]]))), shape=(n, n)).tocsr()
+    A = sp.coo_matrix(
+        (
+            np.ones(2 * len(e)),
+            (np.concatenate([e[:, 0], e[:, 1]]), np.concatenate([e[:, 1], e[:, 0]])),
+        ),
+        shape=(n, n),
+    ).tocsr()
     deg = np.asarray(A.sum(axis=1)).ravel()
     idx = np.nonzero(movable > 0)[0]
     wgt = movable[idx]
@@ -476,13 +666,13 @@ def _relax_front(vertices, triangles, movable, iters: int = 16, step: float = 0.
 
 
 # ----------------------------------------------------------------------------- grid
-_ROW_FACE = 2.9        # mm between rings on the face band (front meridian)
-_ROW_FINE = 1.7        # mm between rings at the eye and mouth slits
-_ROW_OTHER = 5.5       # mm between rings on the scalp and the neck (front meridian)
-_COL_FACE = 2.8        # mm between columns on the face
+_ROW_FACE = 2.9  # mm between rings on the face band (front meridian)
+_ROW_FINE = 1.7  # mm between rings at the eye and mouth slits
+_ROW_OTHER = 5.5  # mm between rings on the scalp and the neck (front meridian)
+_COL_FACE = 2.8  # mm between columns on the face
 _COL_SIDE = 4.5
 _COL_BACK = 7.0
-_FACE_Y = (-84.0, 92.0)     # height band (mm) of the face on the front meridian
+_FACE_Y = (-84.0, 92.0)  # height band (mm) of the face on the front meridian
 
 
 def _row_spacing(y):
@@ -490,23 +680,35 @@ def _row_spacing(y):
     lo, hi = _FACE_Y
     face = _smoothstep(lo - 10.0, lo, y) * _smoothstep(hi + 10.0, hi, y)
     h = _ROW_OTHER + (_ROW_FACE - _ROW_OTHER) * face
-    fine = np.maximum(np.exp(-0.5 * ((y - 0.5 * (_CANTHUS_IN[1] + _CANTHUS_OUT[1])) / 4.5) ** 2),
-                      np.exp(-0.5 * ((y - _MOUTH_MID_Y) / 4.0) ** 2))
-    fine = np.maximum(fine, np.exp(-0.5 * ((y + 9.5) / 3.5) ** 2))      # nose base
+    fine = np.maximum(
+        np.exp(-0.5 * ((y - 0.5 * (_CANTHUS_IN[1] + _CANTHUS_OUT[1])) / 4.5) ** 2),
+        np.exp(-0.5 * ((y - _MOUTH_MID_Y) / 4.0) ** 2),
+    )
+    fine = np.maximum(fine, np.exp(-0.5 * ((y + 9.5) / 3.5) ** 2))  # nose base
     return h + (_ROW_FINE - h) * fine
 
 
 def _col_spacing(theta, y):
     """Column spacing (mm) at azimuth theta on a ring through front height y (mm)."""
     a = np.abs(theta)
-    h = np.where(a < 0.75, _COL_FACE,
-                 np.where(a < 1.6, _COL_FACE + (_COL_SIDE - _COL_FACE) * _smoothstep(0.75, 1.6, a),
-                          _COL_SIDE + (_COL_BACK - _COL_SIDE) * _smoothstep(1.6, 2.4, a)))
+    h = np.where(
+        a < 0.75,
+        _COL_FACE,
+        np.where(
+            a < 1.6,
+            _COL_FACE + (_COL_SIDE - _COL_FACE) * _smoothstep(0.75, 1.6, a),
+            _COL_SIDE + (_COL_BACK - _COL_SIDE) * _smoothstep(1.6, 2.4, a),
+        ),
+    )
     lo, hi = _FACE_Y
     face = _smoothstep(lo - 12.0, lo, y) * _smoothstep(hi + 15.0, hi, y)
     h = face * h + (1.0 - face) * np.maximum(h, 4.2)
     # the ears (|theta| ~ 1.62 rad, -28 < y < 42 mm) get face-like spacing
-    ear = np.exp(-0.5 * ((a - 1.62) / 0.17) ** 2) * _smoothstep(-40.0, -28.0, y) * _smoothstep(52.0, 40.0, y)
+    ear = (
+        np.exp(-0.5 * ((a - 1.62) / 0.17) ** 2)
+        * _smoothstep(-40.0, -28.0, y)
+        * _smoothstep(52.0, 40.0, y)
+    )
     return h + (2.7 - h) * np.clip(ear, 0.0, 1.0) * (h > 2.7)
 
 
@@ -523,7 +725,7 @@ def _ring_elevations() -> np.ndarray:
     rings is set by the front meridian. Rings are therefore nearly horizontal."""
     phis = np.linspace(np.deg2rad(-80.0), np.deg2rad(89.95), 1500)
     TH, PH = np.meshgrid(_MERIDIANS, phis, indexing="ij")
-    p = _base_points(TH, PH)                                   # (M, S, 3)
+    p = _base_points(TH, PH)  # (M, S, 3)
     top = _base_points(np.zeros(1), np.full(1, np.pi / 2))[0]
     ds = np.linalg.norm(np.diff(p, axis=1), axis=2)
     ym = 0.5 * (p[:, 1:, 1] + p[:, :-1, 1])
@@ -535,7 +737,7 @@ def _ring_elevations() -> np.ndarray:
     out = []
     n = None
     for j in range(len(_MERIDIANS)):
-        s0 = np.interp(_NECK_Y, p[j, :, 1], steps[j])          # y grows with phi on a meridian
+        s0 = np.interp(_NECK_Y, p[j, :, 1], steps[j])  # y grows with phi on a meridian
         s1 = np.interp(0.8 * _ROW_OTHER, d_top[j, ::-1], steps[j, ::-1])
         if n is None:
             n = int(round(s1 - s0))
@@ -558,8 +760,9 @@ def _ring_thetas(rows: np.ndarray) -> list[np.ndarray]:
     y_front = p[:, :1, 1]
     ds = np.linalg.norm(np.diff(p, axis=1), axis=2)
     mid = 0.5 * (TH[:, 1:] + TH[:, :-1])
-    steps = np.concatenate([np.zeros((len(rows), 1)),
-                            np.cumsum(ds / _col_spacing(mid, y_front), axis=1)], axis=1)
+    steps = np.concatenate(
+        [np.zeros((len(rows), 1)), np.cumsum(ds / _col_spacing(mid, y_front), axis=1)], axis=1
+    )
     out = []
     for k in range(len(rows)):
         m = max(int(round(steps[k, -1])), 3)
@@ -575,13 +778,17 @@ def _zip_half(a_ids, a_th, b_ids, b_th):
     """Triangles between half rings A (below) and B (above), both running from theta = 0 to
     theta = pi (ascending), counter-clockwise from outside."""
     ev = np.concatenate([a_th[1:], b_th[1:] + 1e-12])
-    kind = np.concatenate([np.zeros(len(a_th) - 1, dtype=np.int64), np.ones(len(b_th) - 1, dtype=np.int64)])
+    kind = np.concatenate(
+        [np.zeros(len(a_th) - 1, dtype=np.int64), np.ones(len(b_th) - 1, dtype=np.int64)]
+    )
     kind = kind[np.argsort(ev, kind="stable")]
     i = np.cumsum(kind == 0) - (kind == 0)
     j = np.cumsum(kind == 1) - (kind == 1)
-    return np.where((kind == 0)[:, None],
-                    np.stack([a_ids[i], a_ids[np.minimum(i + 1, len(a_ids) - 1)], b_ids[j]], axis=1),
-                    np.stack([a_ids[i], b_ids[np.minimum(j + 1, len(b_ids) - 1)], b_ids[j]], axis=1))
+    return np.where(
+        (kind == 0)[:, None],
+        np.stack([a_ids[i], a_ids[np.minimum(i + 1, len(a_ids) - 1)], b_ids[j]], axis=1),
+        np.stack([a_ids[i], b_ids[np.minimum(j + 1, len(b_ids) - 1)], b_ids[j]], axis=1),
+    )
 
 
 def _solve_phi_for_y(theta, y_target, phi0, fn, half_width=0.25, iters=12):
@@ -615,8 +822,12 @@ def _solve_param_for_xy(x, y, iters=40):
         e = 1e-5
         px = _base_points(th + e, ph)
         py = _base_points(th, ph + e)
-        J = np.stack([[(px[:, 0] - p[:, 0]) / e, (py[:, 0] - p[:, 0]) / e],
-                      [(px[:, 1] - p[:, 1]) / e, (py[:, 1] - p[:, 1]) / e]])  # (2, 2, N)
+        J = np.stack(
+            [
+                [(px[:, 0] - p[:, 0]) / e, (py[:, 0] - p[:, 0]) / e],
+                [(px[:, 1] - p[:, 1]) / e, (py[:, 1] - p[:, 1]) / e],
+            ]
+        )  # (2, 2, N)
         rx, ry = x - p[:, 0], y - p[:, 1]
         det = J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0]
         dth = (J[1, 1] * rx - J[0, 1] * ry) / det
@@ -645,16 +856,16 @@ def _snap_ring(thetas: np.ndarray, anchors: np.ndarray) -> tuple[np.ndarray, np.
 class _Slit:
     name: str
     ring: int
-    theta_a: float          # corner azimuths (a < b)
+    theta_a: float  # corner azimuths (a < b)
     theta_b: float
-    line: object            # x -> y of the slit line (mm)
-    upper: object           # x -> y of the upper edge
-    lower: object           # x -> y of the lower edge
-    bend_width: float       # decay of the bend with elevation (radians)
-    open_width_up: float    # decay of the opening with elevation (radians)
+    line: object  # x -> y of the slit line (mm)
+    upper: object  # x -> y of the upper edge
+    lower: object  # x -> y of the lower edge
+    bend_width: float  # decay of the bend with elevation (radians)
+    open_width_up: float  # decay of the opening with elevation (radians)
     open_width_lo: float
     # filled by the builder
-    cols: np.ndarray | None = None       # column ids (in the ring) strictly inside
+    cols: np.ndarray | None = None  # column ids (in the ring) strictly inside
     theta_knots: np.ndarray | None = None
     bend: np.ndarray | None = None
     a_up: np.ndarray | None = None
@@ -694,15 +905,21 @@ def _slit_warp(s: _Slit, theta, dphi, side):
     inside = (theta >= k[0]) & (theta <= k[-1])
     bend_in = np.interp(theta, k, s.bend)
     # outside the slit the bend fades out over half a slit length
-    fade = np.where(theta < k[0], _smoothstep(k[0] - 0.5 * span, k[0], theta),
-                    _smoothstep(k[-1] + 0.5 * span, k[-1], theta))
+    fade = np.where(
+        theta < k[0],
+        _smoothstep(k[0] - 0.5 * span, k[0], theta),
+        _smoothstep(k[-1] + 0.5 * span, k[-1], theta),
+    )
     bend_out = np.where(theta < k[0], s.bend[0], s.bend[-1]) * fade
     bend = np.where(inside, bend_in, bend_out)
     a_up = np.where(inside, np.interp(theta, k, s.a_up), 0.0)
     a_lo = np.where(inside, np.interp(theta, k, s.a_lo), 0.0)
     g_b = np.exp(-((dphi / s.bend_width) ** 2))
-    opening = np.where(side > 0, a_up * np.exp(-((dphi / s.open_width_up) ** 2)),
-                       -a_lo * np.exp(-((dphi / s.open_width_lo) ** 2)))
+    opening = np.where(
+        side > 0,
+        a_up * np.exp(-((dphi / s.open_width_up) ** 2)),
+        -a_lo * np.exp(-((dphi / s.open_width_lo) ** 2)),
+    )
     return bend * g_b + opening
 
 
@@ -712,15 +929,16 @@ class _Grid:
     triangles: np.ndarray
     theta: np.ndarray
     phi: np.ndarray
-    ring: np.ndarray          # ring index per vertex (-1 for the vertex at the top)
-    upper_copy: np.ndarray    # bool: vertex is the upper copy of a slit column
+    ring: np.ndarray  # ring index per vertex (-1 for the vertex at the top)
+    upper_copy: np.ndarray  # bool: vertex is the upper copy of a slit column
     slits: dict
     n_rings: int
-    mirror: np.ndarray        # mirror vertex id (x -> -x)
+    mirror: np.ndarray  # mirror vertex id (x -> -x)
 
 
 def _eye_curves(sx: float):
     """(line, upper, lower) curves x -> y (mm) for the eye on side sx (+1 left, -1 right)."""
+
     def line(x):
         return _lid_margin_curves(sx * x)[0]
 
@@ -729,6 +947,7 @@ def _eye_curves(sx: float):
 
     def lower(x):
         return _lid_margin_curves(sx * x)[2]
+
     return line, upper, lower
 
 
@@ -743,6 +962,7 @@ def _mouth_curves():
 
     def lower(x):
         return _mouth_line(np.clip(x, -xc, xc)) - 0.5 * _MOUTH_GAP * shape(x)
+
     return (lambda x: _mouth_line(np.clip(x, -xc, xc))), upper, lower
 
 
@@ -755,6 +975,7 @@ def _build_grid() -> _Grid:
     cx = np.array([_CANTHUS_IN[0], _CANTHUS_OUT[0], _MOUTH_CORNER[0], 0.0])
     cy = np.array([_CANTHUS_IN[1], _CANTHUS_OUT[1], _MOUTH_CORNER[1], _MOUTH_MID_Y])
     th_c, ph_c = _solve_param_for_xy(cx, cy)
+
     def ring_at(k, th):
         k = np.asarray(k)
         th = np.abs(np.asarray(th, dtype=np.float64))
@@ -765,10 +986,19 @@ def _build_grid() -> _Grid:
         t = (th - _MERIDIANS[j]) / (_MERIDIANS[j + 1] - _MERIDIANS[j])
         return (1 - t) * rows[k, j] + t * rows[k, j + 1]
 
-    k_eye = int(np.argmin(np.abs(ring_at(np.arange(n_rings), np.full(n_rings, 0.5 * (th_c[0] + th_c[1])))
-                                 - 0.5 * (ph_c[0] + ph_c[1]))))
-    k_mouth = int(np.argmin(np.abs(ring_at(np.arange(n_rings), np.zeros(n_rings))
-                                   - 0.5 * (ph_c[2] + ph_c[3]))))
+    k_eye = int(
+        np.argmin(
+            np.abs(
+                ring_at(np.arange(n_rings), np.full(n_rings, 0.5 * (th_c[0] + th_c[1])))
+                - 0.5 * (ph_c[0] + ph_c[1])
+            )
+        )
+    )
+    k_mouth = int(
+        np.argmin(
+            np.abs(ring_at(np.arange(n_rings), np.zeros(n_rings)) - 0.5 * (ph_c[2] + ph_c[3]))
+        )
+    )
     rings[k_eye], _ = _snap_ring(rings[k_eye], np.array([-th_c[1], -th_c[0], th_c[0], th_c[1]]))
     rings[k_mouth], _ = _snap_ring(rings[k_mouth], np.array([-th_c[2], 0.0, th_c[2]]))
 
@@ -777,11 +1007,31 @@ def _build_grid() -> _Grid:
     for name, sx in (("eye_left", 1.0), ("eye_right", -1.0)):
         line, up, lo = _eye_curves(sx)
         a, b = sorted((sx * th_c[0], sx * th_c[1]))
-        slits[name] = _Slit(name, k_eye, a, b, line, up, lo, bend_width=3.0 * row,
-                            open_width_up=6.5 * row, open_width_lo=4.5 * row)
+        slits[name] = _Slit(
+            name,
+            k_eye,
+            a,
+            b,
+            line,
+            up,
+            lo,
+            bend_width=3.0 * row,
+            open_width_up=6.5 * row,
+            open_width_lo=4.5 * row,
+        )
     line, up, lo = _mouth_curves()
-    slits["mouth"] = _Slit("mouth", k_mouth, -th_c[2], th_c[2], line, up, lo,
-                           bend_width=3.0 * row, open_width_up=1.0 * row, open_width_lo=1.0 * row)
+    slits["mouth"] = _Slit(
+        "mouth",
+        k_mouth,
+        -th_c[2],
+        th_c[2],
+        line,
+        up,
+        lo,
+        bend_width=3.0 * row,
+        open_width_up=1.0 * row,
+        open_width_lo=1.0 * row,
+    )
     for s in slits.values():
         _prepare_slit(s, rings[s.ring], lambda th, k=s.ring: ring_at(k, th))
 
@@ -820,7 +1070,7 @@ def _build_grid() -> _Grid:
     halves = []
     for k, th in enumerate(rings):
         n = len(th)
-        mi = (n - np.arange(n)) % n                     # index of -theta in the sorted ring
+        mi = (n - np.arange(n)) % n  # index of -theta in the sorted ring
         if not np.allclose(th[mi], np.where(th == -np.pi, -np.pi, -th), atol=1e-9):
             raise RuntimeError("internal error: a ring of the head is not mirror symmetric")
         mirror[ids_lo[k]] = ids_lo[k][mi]
@@ -847,8 +1097,9 @@ def _build_grid() -> _Grid:
         phi_w[near] += _slit_warp(s, theta[near], dphi[near], side[near])
     # neck: the lowest ring lies exactly on the horizontal cut y = _NECK_Y
     bottom = ring == 0
-    phi_w[bottom] = _solve_phi_for_y(theta[bottom], _NECK_Y, phi[bottom], _base_points,
-                                     half_width=0.3)
+    phi_w[bottom] = _solve_phi_for_y(
+        theta[bottom], _NECK_Y, phi[bottom], _base_points, half_width=0.3
+    )
     p0 = _base_points(theta, phi_w)
     vertices = _skin_from_base(p0)
     vertices[pole] = _base_points(np.zeros(1), np.full(1, np.pi / 2))[0]
@@ -860,8 +1111,12 @@ def _build_grid() -> _Grid:
     fixed[pole] = True
     fixed[ring == 0] = True
     n0 = _base_normals(p0)
-    movable = (_smoothstep(0.55, 0.8, n0[:, 2]) * (p0[:, 2] > 30.0) * ~fixed
-               * _smoothstep(-100.0, -90.0, p0[:, 1]))
+    movable = (
+        _smoothstep(0.55, 0.8, n0[:, 2])
+        * (p0[:, 2] > 30.0)
+        * ~fixed
+        * _smoothstep(-100.0, -90.0, p0[:, 1])
+    )
     vertices = _relax_front(vertices, triangles, movable)
     return _Grid(vertices, triangles, theta, phi_w, ring, upper_copy, slits, n_rings, mirror)
 
@@ -894,11 +1149,12 @@ def _teeth(upper: bool) -> TriMesh:
     if upper:
         a, b, z0 = 25.5, 40.0, 104.0
         y_edge, y_gum, t_front, t_back = -35.0, -21.0, 6.5, 10.5
-        sgn = -1.0                          # the biting edge is at the bottom
+        sgn = -1.0  # the biting edge is at the bottom
     else:
         a, b, z0 = 23.5, 38.0, 98.6
         y_edge, y_gum, t_front, t_back = -33.6, -47.0, 6.0, 10.0
-        sgn = 1.0                           # the biting edge is at the top
+        sgn = 1.0  # the biting edge is at the top
+
     # the arch: a half ellipse in front, continued straight back (C1) past u = pi/2
     def arch(u):
         u = np.asarray(u, dtype=np.float64)
@@ -922,9 +1178,9 @@ def _teeth(upper: bool) -> TriMesh:
     tx, tz = (qx - px) / e, (qz - pz) / e
     tn = np.hypot(tx, tz)
     tx, tz = tx / tn, tz / tn
-    nx, nz = -tz, tx                # outward (labial/buccal) normal in the xz plane
+    nx, nz = -tz, tx  # outward (labial/buccal) normal in the xz plane
     rel = np.abs(u) / u_max
-    thick = t_front + (t_back - t_front) * rel ** 2
+    thick = t_front + (t_back - t_front) * rel**2
     # tooth boundary grooves along the arch
     bounds = np.cumsum(_TOOTH_WIDTHS) * (half / _TOOTH_WIDTHS.sum())
     bounds = np.concatenate([[0.0], bounds[:-1]])
@@ -934,19 +1190,19 @@ def _teeth(upper: bool) -> TriMesh:
     psi = np.linspace(0.0, 2.0 * np.pi, n_s, endpoint=False)
     cs, sn = np.cos(psi), np.sin(psi)
     q = 4.0
-    sec_n = np.sign(cs) * np.abs(cs) ** (2.0 / q)     # [-1, 1] across (outward +)
-    sec_y = np.sign(sn) * np.abs(sn) ** (2.0 / q)     # [-1, 1] along the height
+    sec_n = np.sign(cs) * np.abs(cs) ** (2.0 / q)  # [-1, 1] across (outward +)
+    sec_y = np.sign(sn) * np.abs(sn) ** (2.0 / q)  # [-1, 1] along the height
     # height coordinate: -1 at the biting edge, +1 at the gum
     # occlusal plane: the incisors overlap vertically (overbite), the back teeth meet edge to
     # edge with a small gap
     back = _smoothstep(0.06, 0.2, np.abs(s_arc) / half)[:, None]
     y_edge_u = y_edge + back * ((-34.1 if upper else -34.3) - y_edge)
-    yy = 0.5 * (y_edge_u + y_gum) + sec_y[None, :] * 0.5 * (y_gum - y_edge_u)   # (n_u, n_s)
-    s_edge = (yy - y_edge_u) / (y_gum - y_edge_u)      # 0 at the edge, 1 at the gum
+    yy = 0.5 * (y_edge_u + y_gum) + sec_y[None, :] * 0.5 * (y_gum - y_edge_u)  # (n_u, n_s)
+    s_edge = (yy - y_edge_u) / (y_gum - y_edge_u)  # 0 at the edge, 1 at the gum
     taper = 0.55 + 0.45 * np.sqrt(np.clip(s_edge, 0.0, 1.0))  # chisel-shaped edge
     V = np.empty((n_u, n_s, 3))
     half_t = 0.5 * thick[:, None] * taper
-    off = -0.5 * thick[:, None] + sec_n[None, :] * half_t           # from the labial surface
+    off = -0.5 * thick[:, None] + sec_n[None, :] * half_t  # from the labial surface
     off = off - groove[:, None] * (np.abs(sec_n)[None, :] > 0.3)
     V[:, :, 0] = px[:, None] + off * nx[:, None]
     V[:, :, 2] = pz[:, None] + off * nz[:, None]
@@ -987,7 +1243,9 @@ def _first_hits(V: np.ndarray, F: np.ndarray, origins: np.ndarray, dirs: np.ndar
         axis = int(np.argmax(np.abs(d)))
         other = [k for k in range(3) if k != axis]
         if np.abs(d[other]).max() < 1e-12:
-            cand = np.all((lo[:, other] <= o[other] + 1e-9) & (hi[:, other] >= o[other] - 1e-9), axis=1)
+            cand = np.all(
+                (lo[:, other] <= o[other] + 1e-9) & (hi[:, other] >= o[other] - 1e-9), axis=1
+            )
         else:
             cand = np.ones(len(F), dtype=bool)
         if not cand.any():
@@ -1084,8 +1342,13 @@ class Head:
     def parts(self) -> dict:
         """All meshes by name: ``skin``, ``eye_left``, ``eye_right``, ``upper_teeth``,
         ``lower_teeth``."""
-        return {"skin": self.mesh, "eye_left": self.eyes[0], "eye_right": self.eyes[1],
-                "upper_teeth": self.upper_teeth, "lower_teeth": self.lower_teeth}
+        return {
+            "skin": self.mesh,
+            "eye_left": self.eyes[0],
+            "eye_right": self.eyes[1],
+            "upper_teeth": self.upper_teeth,
+            "lower_teeth": self.lower_teeth,
+        }
 
 
 def _readonly(a):
@@ -1123,7 +1386,7 @@ def build_head() -> Head:
     for side in ("left", "right"):
         s = g.slits[f"eye_{side}"]
         up, lo = slit_path(s, True), slit_path(s, False)
-        if side == "right":       # order from the inner corner (near x = 0) outward
+        if side == "right":  # order from the inner corner (near x = 0) outward
             up, lo = up[::-1], lo[::-1]
         edges[f"upper_lid_{side}"] = up
         edges[f"lower_lid_{side}"] = lo
@@ -1160,14 +1423,23 @@ def build_head() -> Head:
     pos.update(dict(zip(front_names, hits)))
     pos["Nose tip"] = _most_anterior(V, F, -6.0, 14.0)
     # labrale superius / inferius: the midpoints of the upper and lower vermilion borders
-    lips = _front_hits(V, F, np.array([[0.0, float(_upper_vermilion_border(0.0))],
-                                       [0.0, _MOUTH_MID_Y - _LOWER_LIP_BORDER]]))
+    lips = _front_hits(
+        V,
+        F,
+        np.array(
+            [[0.0, float(_upper_vermilion_border(0.0))], [0.0, _MOUTH_MID_Y - _LOWER_LIP_BORDER]]
+        ),
+    )
     pos["Upper lip outer middle"], pos["Lower lip outer middle"] = lips[0], lips[1]
     pos["Chin middle"] = _most_anterior(V, F, -74.0, -52.0)
     # ear lobes: lowest part of the lobe relief, seen from the side
-    ly, lz = _ear_point(-1.0, -26.0)       # the lower part of the lobe
-    lobe = _first_hits(V, F, np.array([[200.0, ly, lz], [-200.0, ly, lz]]),
-                       np.array([[-1.0, 0.0, 0.0], [1.0, 0.0, 0.0]]))
+    ly, lz = _ear_point(-1.0, -26.0)  # the lower part of the lobe
+    lobe = _first_hits(
+        V,
+        F,
+        np.array([[200.0, ly, lz], [-200.0, ly, lz]]),
+        np.array([[-1.0, 0.0, 0.0], [1.0, 0.0, 0.0]]),
+    )
     pos["Left ear lobe"], pos["Right ear lobe"] = lobe[0], lobe[1]
     landmarks = Landmarks(BOSPHORUS_LABELS, np.array([pos[n] for n in BOSPHORUS_LABELS]))
 
@@ -1178,18 +1450,31 @@ def build_head() -> Head:
     ax = np.abs(x)
     face = (p0[:, 2] > 15.0) & (y > -90.0) & (y < 88.0) & (n0[:, 2] > 0.3)
     # which side of the mouth slit: vertices of the slit ring by their copy, others by ring
-    mouth_side = np.where(g.ring == mouth.ring, np.where(g.upper_copy, 1, -1),
-                          np.sign(g.ring - mouth.ring))
+    mouth_side = np.where(
+        g.ring == mouth.ring, np.where(g.upper_copy, 1, -1), np.sign(g.ring - mouth.ring)
+    )
     in_mouth_x = ax < _MOUTH_CORNER[0] + 3.0
-    upper_lip = face & in_mouth_x & (mouth_side > 0) & (y < -12.5) & (y > _mouth_line(np.minimum(ax, _MOUTH_CORNER[0])) - 1.0)
+    upper_lip = (
+        face
+        & in_mouth_x
+        & (mouth_side > 0)
+        & (y < -12.5)
+        & (y > _mouth_line(np.minimum(ax, _MOUTH_CORNER[0])) - 1.0)
+    )
     lower_lip = face & in_mouth_x & (mouth_side < 0) & (y > -48.0) & (y < -30.0)
-    regions = {"face": face, "upper_lip": upper_lip, "lower_lip": lower_lip,
-               "lips": upper_lip | lower_lip}
+    regions = {
+        "face": face,
+        "upper_lip": upper_lip,
+        "lower_lip": lower_lip,
+        "lips": upper_lip | lower_lip,
+    }
     nose = face & (ax < 23.0) & (y > -14.0) & (y < 42.0)
     nose &= _nose_z(x, y) > _front_base_z(x, y) + _relief_z(x, y) - 1.0
     regions["nose"] = nose
     eye_ring = g.slits["eye_left"].ring
-    eye_side = np.where(g.ring == eye_ring, np.where(g.upper_copy, 1, -1), np.sign(g.ring - eye_ring))
+    eye_side = np.where(
+        g.ring == eye_ring, np.where(g.upper_copy, 1, -1), np.sign(g.ring - eye_ring)
+    )
     for side, sx in (("left", 1.0), ("right", -1.0)):
         c = _EYE_CENTER * np.array([sx, 1.0, 1.0])
         near = face & (np.abs(x - c[0]) < 17.0) & (y > 20.0) & (y < 47.0) & (sx * x > 12.0)
@@ -1205,7 +1490,9 @@ def build_head() -> Head:
     regions["jaw"] = below & (y > -92.0) & (p0[:, 2] > -15.0) & (z > -15.0)
     regions["forehead"] = face & (y > 45.0)
     for side, sx in (("left", 1.0), ("right", -1.0)):
-        regions[f"cheek_{side}"] = face & (sx * x > 18.0) & (y < 24.0) & (y > -40.0) & ~regions["jaw"]
+        regions[f"cheek_{side}"] = (
+            face & (sx * x > 18.0) & (y < 24.0) & (y > -40.0) & ~regions["jaw"]
+        )
         eu, ev = _ear_frame(y, z)
         regions[f"ear_{side}"] = (sx * x > 55.0) & ((ev / 31.0) ** 2 + (eu / 17.5) ** 2 < 1.0)
     regions["neck"] = (y < -85.0) & ~face
@@ -1214,11 +1501,19 @@ def build_head() -> Head:
 
     eyes = (_eyeball(1.0), _eyeball(-1.0))
     centers = np.stack([_EYE_CENTER, _EYE_CENTER * np.array([-1.0, 1.0, 1.0])])
-    return Head(mesh=mesh, landmarks=landmarks, face_mask=regions["face"],
-                upper_teeth=_teeth(True), lower_teeth=_teeth(False), regions=regions,
-                edges={k: _readonly(v) for k, v in edges.items()}, eyes=eyes,
-                eye_centers=_readonly(centers), landmark_vertex=vid,
-                mirror=_readonly(g.mirror.astype(np.int64)))
+    return Head(
+        mesh=mesh,
+        landmarks=landmarks,
+        face_mask=regions["face"],
+        upper_teeth=_teeth(True),
+        lower_teeth=_teeth(False),
+        regions=regions,
+        edges={k: _readonly(v) for k, v in edges.items()},
+        eyes=eyes,
+        eye_centers=_readonly(centers),
+        landmark_vertex=vid,
+        mirror=_readonly(g.mirror.astype(np.int64)),
+    )
 
 
 @functools.lru_cache(maxsize=1)
@@ -1227,8 +1522,16 @@ def generic_head() -> Head:
     return build_head()
 
 
-def save_head(head: Head, directory, *, stem: str = "head", picture: bool = True,
-              panel_px: int = 600, labels: bool = False, units: str = "mm") -> dict:
+def save_head(
+    head: Head,
+    directory,
+    *,
+    stem: str = "head",
+    picture: bool = True,
+    panel_px: int = 600,
+    labels: bool = False,
+    units: str = "mm",
+) -> dict:
     """Write a head to ``directory``: the skin ``<stem>.ply``, its landmarks ``<stem>.lm3``,
     ``upper_teeth.ply``, ``lower_teeth.ply``, ``eye_left.ply``, ``eye_right.ply`` and, if
     ``picture``, ``<stem>.png`` (front and side views with the landmarks).
@@ -1256,16 +1559,29 @@ def save_head(head: Head, directory, *, stem: str = "head", picture: bool = True
     files["skin"] = out / f"{stem}.ply"
     save_mesh(files["skin"], head.mesh, units=units)
     files["landmarks"] = out / f"{stem}.lm3"
-    write_lm3(files["landmarks"], head.landmarks,
-              comment=f"jaxface default head: 24 Bosphorus landmarks (mm) on {stem}.ply")
-    for name, mesh in (("upper_teeth", head.upper_teeth), ("lower_teeth", head.lower_teeth),
-                       ("eye_left", head.eyes[0]), ("eye_right", head.eyes[1])):
+    write_lm3(
+        files["landmarks"],
+        head.landmarks,
+        comment=f"jaxface default head: 24 Bosphorus landmarks (mm) on {stem}.ply",
+    )
+    for name, mesh in (
+        ("upper_teeth", head.upper_teeth),
+        ("lower_teeth", head.lower_teeth),
+        ("eye_left", head.eyes[0]),
+        ("eye_right", head.eyes[1]),
+    ):
         files[name] = out / f"{name}.ply"
         save_mesh(files[name], mesh, units=units)
     if picture:
         from .render import head_layers, save_views
 
-        files["picture"] = save_views(out / f"{stem}.png", head_layers(head), ("front", "side"),
-                                      landmarks=head.landmarks, labels=labels, panel_px=panel_px,
-                                      title="jaxface default head (mm): front and left side")
+        files["picture"] = save_views(
+            out / f"{stem}.png",
+            head_layers(head),
+            ("front", "side"),
+            landmarks=head.landmarks,
+            labels=labels,
+            panel_px=panel_px,
+            title="jaxface default head (mm): front and left side",
+        )
     return files

@@ -18,8 +18,8 @@ from __future__ import annotations
 import difflib
 import os
 import re
+from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import Iterable, Mapping
 
 import numpy as np
 
@@ -103,30 +103,30 @@ MIRROR_PAIRS: tuple[tuple[str, str], ...] = (
 #: points of the alae) -> 9.1/9.2 "left/right nostril border"; the chin middle -> 2.10 "chin
 #: boss"; the ear lobes -> 10.5/10.6 "bottom of left/right ear lobe".
 MPEG4_FDP: dict[str, str] = {
-    "Outer left eyebrow": "4.5",      # left corner of left eyebrow
-    "Middle left eyebrow": "4.3",     # uppermost point of the left eyebrow
-    "Inner left eyebrow": "4.1",      # right corner of left eyebrow
-    "Inner right eyebrow": "4.2",     # left corner of right eyebrow
-    "Middle right eyebrow": "4.4",    # uppermost point of the right eyebrow
-    "Outer right eyebrow": "4.6",     # right corner of right eyebrow
-    "Outer left eye corner": "3.7",   # left corner of left eye
+    "Outer left eyebrow": "4.5",  # left corner of left eyebrow
+    "Middle left eyebrow": "4.3",  # uppermost point of the left eyebrow
+    "Inner left eyebrow": "4.1",  # right corner of left eyebrow
+    "Inner right eyebrow": "4.2",  # left corner of right eyebrow
+    "Middle right eyebrow": "4.4",  # uppermost point of the right eyebrow
+    "Outer right eyebrow": "4.6",  # right corner of right eyebrow
+    "Outer left eye corner": "3.7",  # left corner of left eye
     "Inner left eye corner": "3.11",  # right corner of left eye
     "Inner right eye corner": "3.8",  # left corner of right eye
-    "Outer right eye corner": "3.12", # right corner of right eye
-    "Nose saddle left": "9.7",        # left upper edge of nose bone
-    "Nose saddle right": "9.6",       # right upper edge of nose bone
-    "Left nose peak": "9.1",          # left nostril border
+    "Outer right eye corner": "3.12",  # right corner of right eye
+    "Nose saddle left": "9.7",  # left upper edge of nose bone
+    "Nose saddle right": "9.6",  # right upper edge of nose bone
+    "Left nose peak": "9.1",  # left nostril border
     "Nose tip": "9.3",
-    "Right nose peak": "9.2",         # right nostril border
-    "Left mouth corner": "8.3",       # left corner of outer lip contour
+    "Right nose peak": "9.2",  # right nostril border
+    "Left mouth corner": "8.3",  # left corner of outer lip contour
     "Upper lip outer middle": "8.1",  # middle point of outer upper lip contour
-    "Right mouth corner": "8.4",      # right corner of outer lip contour
+    "Right mouth corner": "8.4",  # right corner of outer lip contour
     "Upper lip inner middle": "2.2",  # middle point of inner upper lip contour
     "Lower lip inner middle": "2.3",  # middle point of inner lower lip contour
     "Lower lip outer middle": "8.2",  # middle point of outer lower lip contour
-    "Chin middle": "2.10",            # chin boss
-    "Left ear lobe": "10.5",          # bottom of left ear lobe
-    "Right ear lobe": "10.6",         # bottom of right ear lobe
+    "Chin middle": "2.10",  # chin boss
+    "Left ear lobe": "10.5",  # bottom of left ear lobe
+    "Right ear lobe": "10.6",  # bottom of right ear lobe
 }
 
 _FDP_TO_LABEL = {v: k for k, v in MPEG4_FDP.items()}
@@ -136,11 +136,23 @@ _FDP_TO_LABEL = {v: k for k, v in MPEG4_FDP.items()}
 # ---------------------------------------------------------------------------------------------
 
 _WORD_MAP = {
-    "l": "left", "lt": "left", "r": "right", "rt": "right",
-    "earlobe": "ear lobe", "earlobes": "ear lobe", "lobe": "lobe", "lobule": "lobe",
-    "eyebrow": "eyebrow", "brow": "eyebrow", "eyecorner": "eye corner",
-    "mid": "middle", "centre": "middle", "center": "middle",
-    "lips": "lip", "corners": "corner", "nosetip": "nose tip",
+    "l": "left",
+    "lt": "left",
+    "r": "right",
+    "rt": "right",
+    "earlobe": "ear lobe",
+    "earlobes": "ear lobe",
+    "lobe": "lobe",
+    "lobule": "lobe",
+    "eyebrow": "eyebrow",
+    "brow": "eyebrow",
+    "eyecorner": "eye corner",
+    "mid": "middle",
+    "centre": "middle",
+    "center": "middle",
+    "lips": "lip",
+    "corners": "corner",
+    "nosetip": "nose tip",
 }
 _STOP = {"of", "the", "point", "pt", "landmark"}
 
@@ -318,7 +330,7 @@ class Landmarks:
             names = (names,)
         return tuple(_normalise_name(n) for n in names if self._find(n) is None)
 
-    def require(self, names: Iterable[str]) -> "Landmarks":
+    def require(self, names: Iterable[str]) -> Landmarks:
         """The landmarks ``names`` in that order; raise if any is absent.
 
         Raises:
@@ -338,7 +350,7 @@ class Landmarks:
         idx = [self._find(n) for n in names]
         return Landmarks([self.names[i] for i in idx], self.positions[idx])
 
-    def subset(self, names: Iterable[str]) -> "Landmarks":
+    def subset(self, names: Iterable[str]) -> Landmarks:
         """The landmarks among ``names`` that are present, in the order of ``names``
         (absent ones are skipped; use :meth:`require` to insist)."""
         if isinstance(names, str):
@@ -355,17 +367,19 @@ class Landmarks:
         return {n: np.array(p) for n, p in zip(self.names, self.positions)}
 
     @classmethod
-    def from_dict(cls, d: Mapping[str, object]) -> "Landmarks":
+    def from_dict(cls, d: Mapping[str, object]) -> Landmarks:
         """From ``{label: (3,) position in mm}``."""
         names = list(d.keys())
-        pos = np.array([np.asarray(d[n], dtype=np.float64).reshape(3) for n in names]).reshape(-1, 3)
+        pos = np.array([np.asarray(d[n], dtype=np.float64).reshape(3) for n in names]).reshape(
+            -1, 3
+        )
         return cls(names, pos)
 
-    def with_positions(self, positions) -> "Landmarks":
+    def with_positions(self, positions) -> Landmarks:
         """Same labels, new ``(N, 3)`` positions (mm)."""
         return Landmarks(self.names, positions)
 
-    def transformed(self, rotation=None, translation=None, scale: float = 1.0) -> "Landmarks":
+    def transformed(self, rotation=None, translation=None, scale: float = 1.0) -> Landmarks:
         """``p' = scale * R p + t`` for every landmark (``R`` (3, 3), ``t`` (3,) mm)."""
         p = self.positions * float(scale)
         if rotation is not None:
@@ -374,7 +388,7 @@ class Landmarks:
             p = p + np.asarray(translation, dtype=np.float64)
         return Landmarks(self.names, p)
 
-    def mirrored(self, swap_labels: bool = True) -> "Landmarks":
+    def mirrored(self, swap_labels: bool = True) -> Landmarks:
         """Reflect through the x = 0 plane (x -> -x). With ``swap_labels`` the left/right labels
         are exchanged too (the physically mirrored face, correctly labelled again); without,
         the result is what a mirrored input looks like (and fails :func:`check_side`)."""
@@ -532,7 +546,9 @@ def read_lm3(path) -> Landmarks:
     return Landmarks(names, np.asarray(pos, dtype=np.float64).reshape(-1, 3))
 
 
-def write_lm3(path, landmarks: Landmarks, comment: str = "landmarks written by jaxface (mm)") -> None:
+def write_lm3(
+    path, landmarks: Landmarks, comment: str = "landmarks written by jaxface (mm)"
+) -> None:
     """Write landmarks as a Bosphorus ``.lm3`` file (coordinates in mm, 6 decimals).
 
     Args:

@@ -75,9 +75,21 @@ DEGENERATE_TOL = 1e-10
 #: millimetres per unit
 UNIT_SCALE = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
 _UNIT_ALIASES = {
-    "mm": "mm", "millimetre": "mm", "millimetres": "mm", "millimeter": "mm", "millimeters": "mm",
-    "cm": "cm", "centimetre": "cm", "centimetres": "cm", "centimeter": "cm", "centimeters": "cm",
-    "m": "m", "metre": "m", "metres": "m", "meter": "m", "meters": "m",
+    "mm": "mm",
+    "millimetre": "mm",
+    "millimetres": "mm",
+    "millimeter": "mm",
+    "millimeters": "mm",
+    "cm": "cm",
+    "centimetre": "cm",
+    "centimetres": "cm",
+    "centimeter": "cm",
+    "centimeters": "cm",
+    "m": "m",
+    "metre": "m",
+    "metres": "m",
+    "meter": "m",
+    "meters": "m",
 }
 
 #: default plausible range (mm) of the largest bounding-box extent of a loaded mesh. A human
@@ -166,9 +178,7 @@ def closest_point_barycentric(points, a, b, c) -> np.ndarray:
         put(np.isfinite(v) & np.isfinite(w) & (denom != 0), 1 - v - w, v, w)  # inside
     if not done.all():  # degenerate leftovers: nearest corner
         rest = ~done
-        dist = np.stack(
-            [np.linalg.norm(p[rest] - q[rest], axis=1) for q in (a, b, c)], axis=1
-        )
+        dist = np.stack([np.linalg.norm(p[rest] - q[rest], axis=1) for q in (a, b, c)], axis=1)
         out[rest] = np.eye(3)[np.argmin(dist, axis=1)]
     out = np.clip(out, 0.0, 1.0)
     return out / out.sum(axis=1, keepdims=True)
@@ -196,7 +206,7 @@ class RayHits:
     For a first-hit cast ``K == hit.sum()`` and ``ray_index == np.flatnonzero(hit)``.
     """
 
-    points: "SurfacePoints"
+    points: SurfacePoints
     distances: np.ndarray
     ray_index: np.ndarray
     locations: np.ndarray
@@ -239,8 +249,10 @@ class RayHits:
 
 def _as_vertices(vertices) -> np.ndarray:
     v = np.asarray(vertices)
-    if v.ndim != 2 or v.shape[1] != 3 or not (
-        np.issubdtype(v.dtype, np.floating) or np.issubdtype(v.dtype, np.integer)
+    if (
+        v.ndim != 2
+        or v.shape[1] != 3
+        or not (np.issubdtype(v.dtype, np.floating) or np.issubdtype(v.dtype, np.integer))
     ):
         raise MeshError(
             f"vertices must be a (V, 3) array of numbers in mm; got shape {v.shape} dtype "
@@ -263,7 +275,11 @@ def _as_triangles(triangles) -> np.ndarray:
             problem="shape",
         )
     if not np.issubdtype(t.dtype, np.integer):
-        if np.issubdtype(t.dtype, np.floating) and np.all(np.isfinite(t)) and np.all(t == np.round(t)):
+        if (
+            np.issubdtype(t.dtype, np.floating)
+            and np.all(np.isfinite(t))
+            and np.all(t == np.round(t))
+        ):
             t = t.astype(np.int64)
         else:
             raise MeshError(
@@ -299,8 +315,9 @@ class TriMesh:
         degenerate_tol: relative zero-area tolerance used by the validation (see module doc).
     """
 
-    def __init__(self, vertices, triangles, *, validate: bool = True,
-                 degenerate_tol: float = DEGENERATE_TOL):
+    def __init__(
+        self, vertices, triangles, *, validate: bool = True, degenerate_tol: float = DEGENERATE_TOL
+    ):
         self._vertices = _as_vertices(vertices)
         self._triangles = _as_triangles(triangles)
         self._degenerate_tol = float(degenerate_tol)
@@ -337,7 +354,7 @@ class TriMesh:
     def __repr__(self) -> str:
         return f"TriMesh(V={self.n_vertices}, F={self.n_triangles})"
 
-    def with_vertices(self, vertices, *, validate: bool = False) -> "TriMesh":
+    def with_vertices(self, vertices, *, validate: bool = False) -> TriMesh:
         """The same topology with new ``(V, 3)`` vertex positions (mm)."""
         v = np.asarray(vertices)
         if v.shape != self._vertices.shape:
@@ -594,8 +611,10 @@ class TriMesh:
         nv = self.n_vertices
         w = self.edge_lengths if weighted else np.ones(e.shape[0])
         g = sp.coo_matrix(
-            (np.concatenate([w, w]), (np.concatenate([e[:, 0], e[:, 1]]),
-                                      np.concatenate([e[:, 1], e[:, 0]]))),
+            (
+                np.concatenate([w, w]),
+                (np.concatenate([e[:, 0], e[:, 1]]), np.concatenate([e[:, 1], e[:, 0]])),
+            ),
             shape=(nv, nv),
         ).tocsr()
         g.sort_indices()
@@ -664,7 +683,9 @@ class TriMesh:
         """Signed enclosed volume, mm^3 (divergence theorem); positive for a closed mesh whose
         triangles are counter-clockwise seen from outside. Meaningless for open meshes."""
         v, t = self._vertices, self._triangles
-        return float(np.einsum("ij,ij->i", v[t[:, 0]], np.cross(v[t[:, 1]], v[t[:, 2]])).sum() / 6.0)
+        return float(
+            np.einsum("ij,ij->i", v[t[:, 0]], np.cross(v[t[:, 1]], v[t[:, 2]])).sum() / 6.0
+        )
 
     # ---------------------------------------------------------------- geodesics
     def geodesic_distance(self, sources, normalise: bool = True) -> np.ndarray:
@@ -691,7 +712,9 @@ class TriMesh:
             src = np.flatnonzero(src)
         src = np.atleast_1d(src).astype(np.int64).ravel()
         if src.size == 0:
-            raise MeshError("geodesic_distance needs at least one source vertex.", problem="bad_sources")
+            raise MeshError(
+                "geodesic_distance needs at least one source vertex.", problem="bad_sources"
+            )
         bad = src[(src < 0) | (src >= self.n_vertices)]
         if bad.size:
             raise MeshError(
@@ -709,7 +732,7 @@ class TriMesh:
         return d
 
     # ---------------------------------------------------------------- trimesh bridge
-    def to_trimesh(self) -> "trimesh.Trimesh":
+    def to_trimesh(self) -> trimesh.Trimesh:
         """A ``trimesh.Trimesh`` with the same vertices and triangles (``process=False``, so
         vertex and triangle ids are unchanged). Cached: do not modify it."""
         return self._trimesh
@@ -719,16 +742,18 @@ class TriMesh:
         import trimesh
 
         return trimesh.Trimesh(
-            vertices=np.array(self._vertices), faces=np.array(self._triangles),
-            process=False, validate=False,
+            vertices=np.array(self._vertices),
+            faces=np.array(self._triangles),
+            process=False,
+            validate=False,
         )
 
     @classmethod
-    def from_trimesh(cls, tm, *, validate: bool = True) -> "TriMesh":
+    def from_trimesh(cls, tm, *, validate: bool = True) -> TriMesh:
         """Build from a ``trimesh.Trimesh`` (its vertices are taken as mm; ids unchanged)."""
         return cls(np.asarray(tm.vertices), np.asarray(tm.faces), validate=validate)
 
-    def submesh(self, face_mask) -> tuple["TriMesh", np.ndarray]:
+    def submesh(self, face_mask) -> tuple[TriMesh, np.ndarray]:
         """The mesh made of a subset of the triangles, with only the vertices they use.
 
         Args:
@@ -762,12 +787,14 @@ class TriMesh:
         old = np.unique(t)
         new_t = np.searchsorted(old, t)
         return (
-            TriMesh(self._vertices[old], new_t, validate=False, degenerate_tol=self._degenerate_tol),
+            TriMesh(
+                self._vertices[old], new_t, validate=False, degenerate_tol=self._degenerate_tol
+            ),
             _readonly(old.astype(np.int64)),
         )
 
     # ---------------------------------------------------------------- projection / rays
-    def closest_points(self, points) -> tuple["SurfacePoints", np.ndarray]:
+    def closest_points(self, points) -> tuple[SurfacePoints, np.ndarray]:
         """Project points onto the surface (exact closest point on the triangles).
 
         The closest triangle comes from ``trimesh.proximity.closest_point`` (an exact r-tree
@@ -790,7 +817,8 @@ class TriMesh:
         if not np.all(np.isfinite(p)):
             bad = np.flatnonzero(~np.all(np.isfinite(p), axis=1))
             raise MeshError(
-                f"query points {_list(bad)} have NaN/inf coordinates.", problem="nonfinite_points",
+                f"query points {_list(bad)} have NaN/inf coordinates.",
+                problem="nonfinite_points",
                 elements=bad,
             )
         if p.shape[0] == 0:
@@ -811,9 +839,17 @@ class TriMesh:
     def _mean_edge(self) -> float:
         return float(np.mean(self.edge_lengths)) if self.edges.shape[0] else 1.0
 
-    def ray_cast(self, origins, directions, all_hits: bool = False, *,
-                 min_distance: float = 0.0, max_distance: float = np.inf,
-                 chunk: int = 200_000, merge_coincident: bool = True) -> RayHits:
+    def ray_cast(
+        self,
+        origins,
+        directions,
+        all_hits: bool = False,
+        *,
+        min_distance: float = 0.0,
+        max_distance: float = np.inf,
+        chunk: int = 200_000,
+        merge_coincident: bool = True,
+    ) -> RayHits:
         """Cast rays against the mesh; first hit or all hits.
 
         Each ray is clipped to the mesh's bounding box (and to ``max_distance``) and cut into
@@ -962,8 +998,9 @@ class TriMesh:
         while start < rays.size:
             base = int(cum[start - 1]) if start else 0
             stop = max(int(np.searchsorted(cum, base + chunk, side="right")), start + 1)
-            rr, tt, dd_ = self._cast_batch(o, d, rays[start:stop], ta[start:stop],
-                                           tb[start:stop], npc[start:stop], eps)
+            rr, tt, dd_ = self._cast_batch(
+                o, d, rays[start:stop], ta[start:stop], tb[start:stop], npc[start:stop], eps
+            )
             out_r.append(rr)
             out_t.append(tt)
             out_d.append(dd_)
@@ -979,8 +1016,9 @@ class TriMesh:
         a = o[ray_of] + d[ray_of] * ta[:, None]
         b = a + d[ray_of] * plen[:, None]
         pad = 1e3 * eps
-        ids, counts = self._triangle_tree.intersection_v(np.minimum(a, b) - pad,
-                                                         np.maximum(a, b) + pad)
+        ids, counts = self._triangle_tree.intersection_v(
+            np.minimum(a, b) - pad, np.maximum(a, b) + pad
+        )
         pr = np.repeat(ray_of, np.asarray(counts, dtype=np.int64))
         pt = np.asarray(ids, dtype=np.int64)
         if pr.size == 0:
@@ -995,8 +1033,11 @@ class TriMesh:
         dd = d[pr]
         pv = np.cross(dd, e2)
         det = np.einsum("ij,ij->i", e1, pv)
-        ok = np.abs(det) > 1e-14 * np.einsum("ij,ij->i", e1, e1) * np.sqrt(
-            np.einsum("ij,ij->i", e2, e2)) + 1e-300
+        ok = (
+            np.abs(det)
+            > 1e-14 * np.einsum("ij,ij->i", e1, e1) * np.sqrt(np.einsum("ij,ij->i", e2, e2))
+            + 1e-300
+        )
         inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
         s = o[pr] - tv[:, 0]
         u = np.einsum("ij,ij->i", s, pv) * inv
@@ -1006,6 +1047,7 @@ class TriMesh:
         tol = 1e-9
         good = ok & (u >= -tol) & (v >= -tol) & (u + v <= 1.0 + tol)
         return pr[good], pt[good], t[good]
+
 
 # --------------------------------------------------------------------------------------------
 # units
@@ -1024,8 +1066,9 @@ def unit_scale(units: str) -> float:
     return UNIT_SCALE[key]
 
 
-def check_plausible_size(vertices_mm, units: str, *, source: str = "mesh",
-                         size_range=PLAUSIBLE_SIZE_MM) -> None:
+def check_plausible_size(
+    vertices_mm, units: str, *, source: str = "mesh", size_range=PLAUSIBLE_SIZE_MM
+) -> None:
     """Raise :class:`UnitsError` if the largest bounding-box extent (mm, after conversion from
     ``units``) is outside ``size_range`` (mm), with advice on which unit would fit.
 
@@ -1050,7 +1093,9 @@ def check_plausible_size(vertices_mm, units: str, *, source: str = "mesh",
     fits = [u for u, s in UNIT_SCALE.items() if lo <= raw * s <= hi]
     advice = (
         f"It would be {raw * UNIT_SCALE[fits[0]]:.4g} mm with units={fits[0]!r}; pass that if the "
-        f"file is in {fits[0]}." if fits else "No unit among mm/cm/m gives a plausible size."
+        f"file is in {fits[0]}."
+        if fits
+        else "No unit among mm/cm/m gives a plausible size."
     )
     raise UnitsError(
         f"{source}: largest extent is {ext:.4g} mm after reading it as units={units!r}, but a "
@@ -1135,7 +1180,9 @@ def _ply_header(path: Path) -> tuple[str, dict[str, int], int]:
             try:
                 counts[parts[1]] = int(parts[2])
             except ValueError:
-                raise MeshError(f"{path}: bad PLY header line {line!r}.", problem="corrupt_file") from None
+                raise MeshError(
+                    f"{path}: bad PLY header line {line!r}.", problem="corrupt_file"
+                ) from None
     body_start = data.find(b"\n", end) + 1
     n_lines = -1
     if fmt == "ascii":
@@ -1144,8 +1191,14 @@ def _ply_header(path: Path) -> tuple[str, dict[str, int], int]:
     return fmt, counts, n_lines
 
 
-def load_mesh(path, units: str = "mm", *, check_size: bool = True, validate: bool = True,
-              size_range=PLAUSIBLE_SIZE_MM) -> TriMesh:
+def load_mesh(
+    path,
+    units: str = "mm",
+    *,
+    check_size: bool = True,
+    validate: bool = True,
+    size_range=PLAUSIBLE_SIZE_MM,
+) -> TriMesh:
     """Read an OBJ or PLY triangle mesh and convert it to millimetres.
 
     Vertex ids are kept exactly as in the file (trimesh ``process=False, maintain_order=True``:
@@ -1180,7 +1233,8 @@ def load_mesh(path, units: str = "mm", *, check_size: bool = True, validate: boo
     ext = path.suffix.lower()
     if ext not in (".obj", ".ply"):
         raise MeshError(
-            f"{path}: unsupported mesh format {ext!r}; use .obj or .ply.", problem="unsupported_format"
+            f"{path}: unsupported mesh format {ext!r}; use .obj or .ply.",
+            problem="unsupported_format",
         )
     ply_counts: dict[str, int] = {}
     if ext == ".obj":
@@ -1205,8 +1259,10 @@ def load_mesh(path, units: str = "mm", *, check_size: bool = True, validate: boo
     faces = np.asarray(getattr(tm, "faces", np.zeros((0, 3))))
     verts = np.asarray(getattr(tm, "vertices", np.zeros((0, 3))))
     if faces.ndim != 2 or faces.shape[0] == 0:
-        raise MeshError(f"{path}: file holds no triangles (a point cloud or empty mesh?).",
-                        problem="corrupt_file")
+        raise MeshError(
+            f"{path}: file holds no triangles (a point cloud or empty mesh?).",
+            problem="corrupt_file",
+        )
     if ext == ".ply":
         nv_decl = ply_counts.get("vertex")
         nf_decl = ply_counts.get("face")
@@ -1234,8 +1290,9 @@ def load_mesh(path, units: str = "mm", *, check_size: bool = True, validate: boo
         raise err from e
 
 
-def save_mesh(path, mesh_or_vertices, triangles=None, units: str = "mm", *,
-              encoding: str = "binary") -> None:
+def save_mesh(
+    path, mesh_or_vertices, triangles=None, units: str = "mm", *, encoding: str = "binary"
+) -> None:
     """Write a triangle mesh to OBJ or PLY, converting from mm to ``units``.
 
     Vertex and triangle order are kept. PLY is written by trimesh with float32 coordinates
@@ -1257,19 +1314,26 @@ def save_mesh(path, mesh_or_vertices, triangles=None, units: str = "mm", *,
         v, t = mesh_or_vertices.vertices, mesh_or_vertices.triangles
     else:
         if triangles is None:
-            raise MeshError("save_mesh: give a TriMesh, or vertices and triangles.", problem="shape")
+            raise MeshError(
+                "save_mesh: give a TriMesh, or vertices and triangles.", problem="shape"
+            )
         v, t = _as_vertices(mesh_or_vertices), _as_triangles(triangles)
     ext = path.suffix.lower()
-    tm = trimesh.Trimesh(vertices=np.array(v) / scale, faces=np.array(t), process=False,
-                         validate=False)
+    tm = trimesh.Trimesh(
+        vertices=np.array(v) / scale, faces=np.array(t), process=False, validate=False
+    )
     if ext == ".ply":
-        data = trimesh.exchange.ply.export_ply(tm, encoding=encoding, vertex_normal=False,
-                                               include_attributes=False)
+        data = trimesh.exchange.ply.export_ply(
+            tm, encoding=encoding, vertex_normal=False, include_attributes=False
+        )
         path.write_bytes(data)
     elif ext == ".obj":
-        text = trimesh.exchange.obj.export_obj(tm, include_normals=False, include_color=False,
-                                               include_texture=False, digits=10)
+        text = trimesh.exchange.obj.export_obj(
+            tm, include_normals=False, include_color=False, include_texture=False, digits=10
+        )
         path.write_text(text)
     else:
-        raise MeshError(f"{path}: unsupported mesh format {ext!r}; use .obj or .ply.",
-                        problem="unsupported_format")
+        raise MeshError(
+            f"{path}: unsupported mesh format {ext!r}; use .obj or .ply.",
+            problem="unsupported_format",
+        )

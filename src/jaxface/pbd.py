@@ -108,6 +108,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._arrays import to_jax
 from .coloring import balanced_coloring, particle_counts
 from .constraints import (
     AnchorConstraints,
@@ -122,7 +123,6 @@ from .constraints import (
     safe_norm,
 )
 from .errors import MeshError
-from ._arrays import to_jax
 
 __all__ = [
     "DEFAULT_DT",
@@ -184,29 +184,34 @@ def distance_constraints(pairs, x_rest=None, *, rest=None, stiffness=1.0, compli
         stiffness: ``k`` in ``[0, 1]`` (scalar or ``(M,)``).
         compliance: XPBD compliance, ``None`` for PBD.
     """
-    return DistanceConstraints.build(pairs, x_rest, rest=rest, stiffness=stiffness,
-                                     compliance=compliance)
+    return DistanceConstraints.build(
+        pairs, x_rest, rest=rest, stiffness=stiffness, compliance=compliance
+    )
 
 
 def bending_constraints(edge_pairs, x_rest=None, *, rest=None, stiffness=1.0, compliance=None):
     """Dihedral bending constraints (eq. 3.20) on ``(M, 4)`` rows ``[a, b, c, d]``
     (:attr:`jaxface.mesh.TriMesh.edge_pairs`); rest angles (rad) measured on ``x_rest`` (mm)."""
-    return BendingConstraints.build(edge_pairs, x_rest, rest=rest, stiffness=stiffness,
-                                    compliance=compliance)
+    return BendingConstraints.build(
+        edge_pairs, x_rest, rest=rest, stiffness=stiffness, compliance=compliance
+    )
 
 
 def area_constraints(triangles, x_rest=None, *, rest=None, stiffness=1.0, compliance=None):
     """Triangle area constraints (eq. 3.21); rest areas (mm^2) measured on ``x_rest`` (mm)."""
-    return AreaConstraints.build(triangles, x_rest, rest=rest, stiffness=stiffness,
-                                 compliance=compliance)
+    return AreaConstraints.build(
+        triangles, x_rest, rest=rest, stiffness=stiffness, compliance=compliance
+    )
 
 
-def volume_constraint(triangles, x_rest=None, *, rest=None, origin=None, stiffness=1.0,
-                      compliance=None):
+def volume_constraint(
+    triangles, x_rest=None, *, rest=None, origin=None, stiffness=1.0, compliance=None
+):
     """Global volume constraint (eq. 3.22) of a closed or capped surface; ``rest`` mm^3
     (default: measured on ``x_rest``), ``origin`` mm cap point. See :class:`VolumeConstraint`."""
-    return VolumeConstraint.build(triangles, x_rest, rest=rest, origin=origin,
-                                  stiffness=stiffness, compliance=compliance)
+    return VolumeConstraint.build(
+        triangles, x_rest, rest=rest, origin=origin, stiffness=stiffness, compliance=compliance
+    )
 
 
 def anchor_constraints(indices, targets, *, stiffness=1.0, compliance=None):
@@ -217,17 +222,18 @@ def anchor_constraints(indices, targets, *, stiffness=1.0, compliance=None):
 
 def halfspace_constraints(indices, normals, offsets, *, stiffness=1.0, compliance=None):
     """Unilateral plane constraints ``n . p >= d`` (mm) for particles ``(M,)``."""
-    return HalfSpaceConstraints.build(indices, normals, offsets, stiffness=stiffness,
-                                      compliance=compliance)
+    return HalfSpaceConstraints.build(
+        indices, normals, offsets, stiffness=stiffness, compliance=compliance
+    )
 
 
-def hull_constraints(indices, normals, offsets, *, clearance=0.0, stiffness=1.0,
-                     compliance=None):
+def hull_constraints(indices, normals, offsets, *, clearance=0.0, stiffness=1.0, compliance=None):
     """Convex-hull collision for particles ``(M,)`` against the planes ``(H, 3)``, ``(H,)`` mm
     of one convex hull (:func:`hull_planes`); run-time planes via ``system.set(name,
     normals=..., offsets=...)`` (:func:`transform_planes` for a hull moving with the jaw)."""
-    return HullConstraints.build(indices, normals, offsets, clearance=clearance,
-                                 stiffness=stiffness, compliance=compliance)
+    return HullConstraints.build(
+        indices, normals, offsets, clearance=clearance, stiffness=stiffness, compliance=compliance
+    )
 
 
 def hull_planes(points) -> tuple[np.ndarray, np.ndarray]:
@@ -280,8 +286,18 @@ def transform_planes(normals, offsets, rotation, translation):
     return n, jnp.asarray(offsets) + n @ jnp.asarray(translation)
 
 
-def skin_constraints(mesh, triangles=None, *, stretch=0.15, cross=None, bend=0.95, area=0.95,
-                     volume=1.0, origin=None, compliance=None) -> dict[str, Constraints]:
+def skin_constraints(
+    mesh,
+    triangles=None,
+    *,
+    stretch=0.15,
+    cross=None,
+    bend=0.95,
+    area=0.95,
+    volume=1.0,
+    origin=None,
+    compliance=None,
+) -> dict[str, Constraints]:
     """The thesis's skin constraint set (sec. 5.5): stretch along every edge, stretch between
     the opposite vertices of adjacent triangles, bending on every interior edge, area on every
     triangle and one volume constraint, rest values measured on the mesh.
@@ -308,20 +324,24 @@ def skin_constraints(mesh, triangles=None, *, stretch=0.15, cross=None, bend=0.9
     cross = stretch if cross is None else cross
     out: dict[str, Constraints] = {}
     if stretch:
-        out["stretch"] = distance_constraints(mesh.edges, x, stiffness=stretch,
-                                              compliance=comp.get("stretch"))
+        out["stretch"] = distance_constraints(
+            mesh.edges, x, stiffness=stretch, compliance=comp.get("stretch")
+        )
     pairs = mesh.edge_pairs
     if cross and len(pairs):
-        out["cross"] = distance_constraints(pairs[:, 2:], x, stiffness=cross,
-                                            compliance=comp.get("cross"))
+        out["cross"] = distance_constraints(
+            pairs[:, 2:], x, stiffness=cross, compliance=comp.get("cross")
+        )
     if bend and len(pairs):
         out["bend"] = bending_constraints(pairs, x, stiffness=bend, compliance=comp.get("bend"))
     if area:
-        out["area"] = area_constraints(mesh.triangles, x, stiffness=area,
-                                       compliance=comp.get("area"))
+        out["area"] = area_constraints(
+            mesh.triangles, x, stiffness=area, compliance=comp.get("area")
+        )
     if volume:
-        out["volume"] = volume_constraint(mesh.triangles, x, origin=origin, stiffness=volume,
-                                          compliance=comp.get("volume"))
+        out["volume"] = volume_constraint(
+            mesh.triangles, x, origin=origin, stiffness=volume, compliance=comp.get("volume")
+        )
     return out
 
 
@@ -368,14 +388,14 @@ class System(eqx.Module):
                 problem="unknown_group",
             ) from None
 
-    def set(self, name: str, **fields) -> "System":
+    def set(self, name: str, **fields) -> System:
         """Copy with fields of group ``name`` replaced (user order, differentiable), e.g.
         ``system.set("anchors", target=t)`` or ``system.set("teeth", normals=n, offsets=d)``."""
         i = self._index(name)
         g = self.groups[i].set(**fields)
         return eqx.tree_at(lambda s: s.groups[i], self, g)
 
-    def with_inv_mass(self, inv_mass) -> "System":
+    def with_inv_mass(self, inv_mass) -> System:
         """Copy with new inverse masses ``(N,)`` 1/g."""
         w = jnp.asarray(inv_mass, self.inv_mass.dtype)
         if w.shape != self.inv_mass.shape:
@@ -416,8 +436,9 @@ def build_system(constraints, inv_mass) -> System:
     else:
         w = np.asarray(inv_mass, np.float64)
     if w.ndim != 1 or w.size == 0:
-        raise MeshError(f"inv_mass must be a non-empty (N,) array, got shape {w.shape}.",
-                        problem="shape")
+        raise MeshError(
+            f"inv_mass must be a non-empty (N,) array, got shape {w.shape}.", problem="shape"
+        )
     bad = np.flatnonzero(~np.isfinite(w) | (w < 0))
     if bad.size:
         raise MeshError(
@@ -432,8 +453,9 @@ def build_system(constraints, inv_mass) -> System:
     counts = np.zeros(n, np.int64)
     for name, g in items:
         if not isinstance(name, str) or name in names:
-            raise MeshError(f"constraint group names must be unique strings, got {name!r}.",
-                            problem="bad_name")
+            raise MeshError(
+                f"constraint group names must be unique strings, got {name!r}.", problem="bad_name"
+            )
         if not isinstance(g, Constraints):
             raise MeshError(
                 f"group {name!r} is a {type(g).__name__}, not a constraint group; build it "
@@ -617,8 +639,9 @@ def _jacobi_group(g, inputs, xs, acc, dyn, lam, dt):
         dps, dlam, active = _project_block(gc, P, Wc, A, lamc)
         acc = _scatter_add_all(acc, ids, dps)
         if active is not None:
-            dyn = dyn.at[ids[0]].add(active.astype(dyn.dtype), unique_indices=True,
-                                     mode="promise_in_bounds")
+            dyn = dyn.at[ids[0]].add(
+                active.astype(dyn.dtype), unique_indices=True, mode="promise_in_bounds"
+            )
         return (acc, dyn), (None if dlam is None else lamc + dlam)
 
     (acc, dyn), lam = jax.lax.scan(body, (acc, dyn), (blocks, IDS, W, lam))
@@ -653,8 +676,7 @@ def _sweep(system, inputs, w_ext, cnt_ext, scheme, omega, dt, xs, lams):
 
 def _zero_lambdas(system, dtype):
     return tuple(
-        None if g.compliance is None else jnp.zeros(g.lambda_shape(), dtype)
-        for g in system.groups
+        None if g.compliance is None else jnp.zeros(g.lambda_shape(), dtype) for g in system.groups
     )
 
 
@@ -665,8 +687,9 @@ def _iterate(system, xs, *, iterations, scheme, omega, dt, checkpoint_every):
     if iterations < 0:
         raise MeshError(f"iterations must be >= 0, got {iterations}.", problem="bad_option")
     if checkpoint_every is not None and int(checkpoint_every) < 1:
-        raise MeshError(f"checkpoint_every must be >= 1 or None, got {checkpoint_every}.",
-                        problem="bad_option")
+        raise MeshError(
+            f"checkpoint_every must be >= 1 or None, got {checkpoint_every}.", problem="bad_option"
+        )
     if iterations == 0:
         return xs
     D = system.n_dummy
@@ -713,9 +736,16 @@ def _check_x(system, x, what="x"):
 
 
 @eqx.filter_jit
-def project(system: System, x, *, iterations: int, scheme: Scheme = DEFAULT_SCHEME,
-            omega: float = DEFAULT_OMEGA, dt: float = DEFAULT_DT,
-            checkpoint_every: int | None = 1):
+def project(
+    system: System,
+    x,
+    *,
+    iterations: int,
+    scheme: Scheme = DEFAULT_SCHEME,
+    omega: float = DEFAULT_OMEGA,
+    dt: float = DEFAULT_DT,
+    checkpoint_every: int | None = 1,
+):
     """Run ``iterations`` projection sweeps over all constraints from positions ``x``
     (thesis loop lines 8-10), XPBD multipliers starting at zero.
 
@@ -735,15 +765,30 @@ def project(system: System, x, *, iterations: int, scheme: Scheme = DEFAULT_SCHE
     x = _check_x(system, x)
     sysd = _cast(system, x.dtype)
     xs = (x[:, 0], x[:, 1], x[:, 2])
-    xs = _iterate(sysd, xs, iterations=iterations, scheme=scheme, omega=omega, dt=dt,
-                  checkpoint_every=checkpoint_every)
+    xs = _iterate(
+        sysd,
+        xs,
+        iterations=iterations,
+        scheme=scheme,
+        omega=omega,
+        dt=dt,
+        checkpoint_every=checkpoint_every,
+    )
     return jnp.stack(xs, axis=1)
 
 
 @eqx.filter_jit
-def relax(system: System, x, *, iterations: int, passes: int = 1,
-          scheme: Scheme = DEFAULT_SCHEME, omega: float = DEFAULT_OMEGA,
-          dt: float = DEFAULT_DT, checkpoint_every: int | None = 1):
+def relax(
+    system: System,
+    x,
+    *,
+    iterations: int,
+    passes: int = 1,
+    scheme: Scheme = DEFAULT_SCHEME,
+    omega: float = DEFAULT_OMEGA,
+    dt: float = DEFAULT_DT,
+    checkpoint_every: int | None = 1,
+):
     """Quasi-static solve: projections from ``x`` without inertia (no prediction, no velocity).
 
     ``passes`` blocks of ``iterations`` sweeps; XPBD multipliers are reset at the start of
@@ -765,8 +810,15 @@ def relax(system: System, x, *, iterations: int, passes: int = 1,
     xs = (x[:, 0], x[:, 1], x[:, 2])
 
     def one(xs):
-        return _iterate(sysd, xs, iterations=iterations, scheme=scheme, omega=omega, dt=dt,
-                        checkpoint_every=checkpoint_every)
+        return _iterate(
+            sysd,
+            xs,
+            iterations=iterations,
+            scheme=scheme,
+            omega=omega,
+            dt=dt,
+            checkpoint_every=checkpoint_every,
+        )
 
     if passes == 1:
         xs = one(xs)
@@ -787,7 +839,7 @@ class Particles(eqx.Module):
     v: jax.Array
 
     @classmethod
-    def at_rest(cls, x) -> "Particles":
+    def at_rest(cls, x) -> Particles:
         """Particles at ``x`` ``(N, 3)`` mm with zero velocity."""
         x = jnp.asarray(x)
         return cls(x=x, v=jnp.zeros_like(x))
@@ -812,8 +864,20 @@ def _damp_rigid(x, v, w, k):
     return v + jnp.where(dyn[:, None], k * dv, 0.0)
 
 
-def _advance(system, particles, *, iterations, dt, damping, damping_mode, gravity,
-             external_force, scheme, omega, checkpoint_every):
+def _advance(
+    system,
+    particles,
+    *,
+    iterations,
+    dt,
+    damping,
+    damping_mode,
+    gravity,
+    external_force,
+    scheme,
+    omega,
+    checkpoint_every,
+):
     x = _check_x(system, particles.x, "particles.x")
     v = jnp.asarray(particles.v, x.dtype)
     sysd = _cast(system, x.dtype)
@@ -827,25 +891,44 @@ def _advance(system, particles, *, iterations, dt, damping, damping_mode, gravit
         elif damping_mode == "rigid":
             v = _damp_rigid(x, v, w, damping)
         else:
-            raise MeshError(f"unknown damping_mode {damping_mode!r}; use 'linear' or 'rigid'.",
-                            problem="bad_option")
+            raise MeshError(
+                f"unknown damping_mode {damping_mode!r}; use 'linear' or 'rigid'.",
+                problem="bad_option",
+            )
     if external_force is not None:
         v = v + dt * w[:, None] * jnp.asarray(external_force, x.dtype)
     if gravity is not None:
         v = v + jnp.where(dyn, dt * jnp.asarray(gravity, x.dtype), 0.0)
     p = x + dt * v
     ps = (p[:, 0], p[:, 1], p[:, 2])
-    ps = _iterate(sysd, ps, iterations=iterations, scheme=scheme, omega=omega, dt=dt,
-                  checkpoint_every=checkpoint_every)
+    ps = _iterate(
+        sysd,
+        ps,
+        iterations=iterations,
+        scheme=scheme,
+        omega=omega,
+        dt=dt,
+        checkpoint_every=checkpoint_every,
+    )
     p = jnp.stack(ps, axis=1)
     return Particles(x=p, v=(p - x) / dt)
 
 
 @eqx.filter_jit
-def step(system: System, particles: Particles, *, iterations: int, dt: float = DEFAULT_DT,
-         damping: float = DEFAULT_DAMPING, damping_mode: Literal["linear", "rigid"] = "linear",
-         gravity=None, external_force=None, scheme: Scheme = DEFAULT_SCHEME,
-         omega: float = DEFAULT_OMEGA, checkpoint_every: int | None = 1) -> Particles:
+def step(
+    system: System,
+    particles: Particles,
+    *,
+    iterations: int,
+    dt: float = DEFAULT_DT,
+    damping: float = DEFAULT_DAMPING,
+    damping_mode: Literal["linear", "rigid"] = "linear",
+    gravity=None,
+    external_force=None,
+    scheme: Scheme = DEFAULT_SCHEME,
+    omega: float = DEFAULT_OMEGA,
+    checkpoint_every: int | None = 1,
+) -> Particles:
     """One PBD time step (thesis sec. 3.2 loop, lines 5-14).
 
     Args:
@@ -862,29 +945,59 @@ def step(system: System, particles: Particles, *, iterations: int, dt: float = D
     Returns:
         :class:`Particles` at ``t + dt``.
     """
-    return _advance(system, particles, iterations=iterations, dt=dt, damping=damping,
-                    damping_mode=damping_mode, gravity=gravity, external_force=external_force,
-                    scheme=scheme, omega=omega, checkpoint_every=checkpoint_every)
+    return _advance(
+        system,
+        particles,
+        iterations=iterations,
+        dt=dt,
+        damping=damping,
+        damping_mode=damping_mode,
+        gravity=gravity,
+        external_force=external_force,
+        scheme=scheme,
+        omega=omega,
+        checkpoint_every=checkpoint_every,
+    )
 
 
 @eqx.filter_jit
-def simulate(system: System, particles: Particles, *, steps: int, iterations: int,
-             dt: float = DEFAULT_DT, damping: float = DEFAULT_DAMPING,
-             damping_mode: Literal["linear", "rigid"] = "linear", gravity=None,
-             external_force=None, scheme: Scheme = DEFAULT_SCHEME,
-             omega: float = DEFAULT_OMEGA, checkpoint_every: int | None = 1,
-             record: bool = False):
+def simulate(
+    system: System,
+    particles: Particles,
+    *,
+    steps: int,
+    iterations: int,
+    dt: float = DEFAULT_DT,
+    damping: float = DEFAULT_DAMPING,
+    damping_mode: Literal["linear", "rigid"] = "linear",
+    gravity=None,
+    external_force=None,
+    scheme: Scheme = DEFAULT_SCHEME,
+    omega: float = DEFAULT_OMEGA,
+    checkpoint_every: int | None = 1,
+    record: bool = False,
+):
     """``steps`` time steps of :func:`step` (``lax.scan``).
 
     Returns:
         the final :class:`Particles`; with ``record=True`` also the positions after every step,
         ``(steps, N, 3)`` mm.
     """
+
     def body(ps, _):
-        new = _advance(system, ps, iterations=iterations, dt=dt, damping=damping,
-                       damping_mode=damping_mode, gravity=gravity,
-                       external_force=external_force, scheme=scheme, omega=omega,
-                       checkpoint_every=checkpoint_every)
+        new = _advance(
+            system,
+            ps,
+            iterations=iterations,
+            dt=dt,
+            damping=damping,
+            damping_mode=damping_mode,
+            gravity=gravity,
+            external_force=external_force,
+            scheme=scheme,
+            omega=omega,
+            checkpoint_every=checkpoint_every,
+        )
         return new, (new.x if record else None)
 
     x = _check_x(system, particles.x, "particles.x")

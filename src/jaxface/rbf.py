@@ -319,9 +319,7 @@ def _check_inputs(src_np: np.ndarray, dst_np: np.ndarray, kernel: str) -> None:
         raise RBFError(f"unknown RBF kernel {kernel!r}; choose one of {KERNELS}.")
     for name, a in (("src", src_np), ("dst", dst_np)):
         if a.ndim != 2 or a.shape[1] != 3:
-            raise RBFError(
-                f"{name} must be an (n, 3) array of points in mm, got shape {a.shape}."
-            )
+            raise RBFError(f"{name} must be an (n, 3) array of points in mm, got shape {a.shape}.")
     if src_np.shape != dst_np.shape:
         raise RBFError(
             f"src and dst must hold the same number of points: src {src_np.shape}, "

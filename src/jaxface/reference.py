@@ -81,9 +81,18 @@ def _records(g, order):
     recs = []
     if isinstance(g, VolumeConstraint):
         tri = np.asarray(u.idx).tolist()
-        recs.append(("volume", (tri, float(np.asarray(u.rest)[0]),
-                                np.asarray(u.origin, np.float64).tolist(), k[0],
-                                None if a is None else a[0])))
+        recs.append(
+            (
+                "volume",
+                (
+                    tri,
+                    float(np.asarray(u.rest)[0]),
+                    np.asarray(u.origin, np.float64).tolist(),
+                    k[0],
+                    None if a is None else a[0],
+                ),
+            )
+        )
         return recs
     if isinstance(g, DistanceConstraints):
         rest = np.asarray(u.rest, np.float64).tolist()
@@ -115,8 +124,7 @@ def _records(g, order):
         for j in seq:
             recs.append(("hull", (idx[j][0], N, D, c[j], k[j], None if a is None else a[j])))
     else:
-        raise MeshError(f"reference solver does not know {type(g).__name__}.",
-                        problem="bad_group")
+        raise MeshError(f"reference solver does not know {type(g).__name__}.", problem="bad_group")
     return recs
 
 
@@ -161,11 +169,15 @@ def _eval(kind, data, x):
             return 0.0, [], False
         nn = math.sqrt(n2)
         nh = _scale(n, 1.0 / nn)
-        return 0.5 * nn - A0, [
-            (a, _scale(_cross(nh, _sub(pc, pb)), 0.5)),
-            (b, _scale(_cross(nh, _sub(pa, pc)), 0.5)),
-            (c, _scale(_cross(nh, _sub(pb, pa)), 0.5)),
-        ], False
+        return (
+            0.5 * nn - A0,
+            [
+                (a, _scale(_cross(nh, _sub(pc, pb)), 0.5)),
+                (b, _scale(_cross(nh, _sub(pa, pc)), 0.5)),
+                (c, _scale(_cross(nh, _sub(pb, pa)), 0.5)),
+            ],
+            False,
+        )
     if kind == "bending":
         (a, b, c, d), th0, *_ = data
         pa, pb, pc, pd = x[a], x[b], x[c], x[d]
@@ -305,8 +317,10 @@ def _prepare(constraints, order):
     if order not in ("user", "color"):
         raise MeshError(f"order must be 'user' or 'color', got {order!r}.", problem="bad_option")
     if order == "color" and system is None:
-        raise MeshError("order='color' needs a jaxface.pbd.System (built with build_system).",
-                        problem="bad_option")
+        raise MeshError(
+            "order='color' needs a jaxface.pbd.System (built with build_system).",
+            problem="bad_option",
+        )
     return [_records(g, order) for g in groups], system
 
 
@@ -331,8 +345,16 @@ def _inv_mass(constraints, inv_mass, n):
     return w.tolist()
 
 
-def solve(constraints, x, *, iterations: int, inv_mass=None, order: str = "user",
-          passes: int = 1, dt: float = 0.0166) -> np.ndarray:
+def solve(
+    constraints,
+    x,
+    *,
+    iterations: int,
+    inv_mass=None,
+    order: str = "user",
+    passes: int = 1,
+    dt: float = 0.0166,
+) -> np.ndarray:
     """Sequential Gauss-Seidel projection (thesis loop lines 8-10), quasi-static.
 
     Args:
@@ -359,8 +381,18 @@ def solve(constraints, x, *, iterations: int, inv_mass=None, order: str = "user"
     return np.asarray(xl)
 
 
-def step(constraints, x, v, *, iterations: int, inv_mass=None, dt: float = 0.0166,
-         damping: float = 0.2, gravity=None, order: str = "user"):
+def step(
+    constraints,
+    x,
+    v,
+    *,
+    iterations: int,
+    inv_mass=None,
+    dt: float = 0.0166,
+    damping: float = 0.2,
+    gravity=None,
+    order: str = "user",
+):
     """One time step of the thesis loop (lines 5-14) with linear damping ``v *= 1 - damping``
     (dynamic particles only) applied before gravity, as in :func:`jaxface.pbd.step`.
 

@@ -56,13 +56,13 @@ __all__ = [
 #: named views: name -> (azimuth_deg about +y, elevation_deg). Camera on +z looks at the face.
 VIEWS: dict[str, tuple[float, float]] = {
     "front": (0.0, 0.0),
-    "side": (90.0, 0.0),        # the subject's left profile (camera on +x)
-    "left": (90.0, 0.0),        # camera on the subject's left (+x)
-    "right": (-90.0, 0.0),      # camera on the subject's right (-x)
+    "side": (90.0, 0.0),  # the subject's left profile (camera on +x)
+    "left": (90.0, 0.0),  # camera on the subject's left (+x)
+    "right": (-90.0, 0.0),  # camera on the subject's right (-x)
     "back": (180.0, 0.0),
     "top": (0.0, 89.0),
     "bottom": (0.0, -89.0),
-    "three_quarter": (35.0, 10.0),     # from the front-left and a little above
+    "three_quarter": (35.0, 10.0),  # from the front-left and a little above
     "three_quarter_right": (-35.0, 10.0),
 }
 
@@ -167,8 +167,12 @@ def as_layers(meshes: Any, **layer_kwargs) -> list[Layer]:
         return [Layer(np.asarray(meshes.vertices), np.asarray(meshes.faces), **layer_kwargs)]
     if hasattr(meshes, "vertices") and hasattr(meshes, "triangles"):  # TriMesh
         return [Layer(np.asarray(meshes.vertices), np.asarray(meshes.triangles), **layer_kwargs)]
-    if (isinstance(meshes, tuple) and len(meshes) == 2 and np.ndim(meshes[0]) == 2
-            and np.ndim(meshes[1]) == 2):
+    if (
+        isinstance(meshes, tuple)
+        and len(meshes) == 2
+        and np.ndim(meshes[0]) == 2
+        and np.ndim(meshes[1]) == 2
+    ):
         return [Layer(np.asarray(meshes[0]), np.asarray(meshes[1]), **layer_kwargs)]
     if isinstance(meshes, Iterable):
         out: list[Layer] = []
@@ -214,7 +218,9 @@ class Camera:
 def _view_basis(view) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if isinstance(view, str):
         if view not in VIEWS:
-            raise ValueError(f"unknown view {view!r}; use one of {sorted(VIEWS)} or (azimuth, elevation)")
+            raise ValueError(
+                f"unknown view {view!r}; use one of {sorted(VIEWS)} or (azimuth, elevation)"
+            )
         az, el = VIEWS[view]
     else:
         az, el = (float(a) for a in view)
@@ -229,8 +235,15 @@ def _view_basis(view) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return right, up, toward
 
 
-def camera(view, points: np.ndarray, width: int = 512, height: int = 512, *,
-           margin: float = 0.06, bounds: np.ndarray | None = None) -> Camera:
+def camera(
+    view,
+    points: np.ndarray,
+    width: int = 512,
+    height: int = 512,
+    *,
+    margin: float = 0.06,
+    bounds: np.ndarray | None = None,
+) -> Camera:
     """A camera for ``view`` framing ``points`` (``(N, 3)`` mm) or the world box ``bounds``.
 
     Args:
@@ -244,7 +257,9 @@ def camera(view, points: np.ndarray, width: int = 512, height: int = 512, *,
     right, up, toward = _view_basis(view)
     if bounds is not None:
         b = np.asarray(bounds, dtype=np.float64)
-        corners = np.array([[b[i, 0], b[j, 1], b[k, 2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+        corners = np.array(
+            [[b[i, 0], b[j, 1], b[k, 2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)]
+        )
         pts = corners
     else:
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
@@ -296,8 +311,9 @@ class Render:
                 for dc in (-1, 0, 1):
                     r = np.clip(row[inside] + dr, 0, h - 1)
                     c = np.clip(col[inside] + dc, 0, w - 1)
-                    best = np.maximum(best, np.where(np.isfinite(self.depth[r, c]),
-                                                     self.depth[r, c], -np.inf))
+                    best = np.maximum(
+                        best, np.where(np.isfinite(self.depth[r, c]), self.depth[r, c], -np.inf)
+                    )
             # visible if nothing is clearly in front of the point; on background -> visible
             out[inside] = (p[inside, 2] >= best - tol) | ~np.isfinite(best)
         return out
@@ -309,10 +325,18 @@ def _light_dir(right, up, toward) -> np.ndarray:
     return d / np.linalg.norm(d)
 
 
-def rasterize(meshes, view="front", width: int = 512, height: int = 512, *,
-              supersample: int = 2, bounds: np.ndarray | None = None,
-              cam: Camera | None = None, background=_BACKGROUND,
-              cull_backfaces: bool = False) -> Render:
+def rasterize(
+    meshes,
+    view="front",
+    width: int = 512,
+    height: int = 512,
+    *,
+    supersample: int = 2,
+    bounds: np.ndarray | None = None,
+    cam: Camera | None = None,
+    background=_BACKGROUND,
+    cull_backfaces: bool = False,
+) -> Render:
     """Render meshes into an RGBA image with a z-buffer (orthographic, smooth shading).
 
     Args:
@@ -337,7 +361,9 @@ def rasterize(meshes, view="front", width: int = 512, height: int = 512, *,
     if not layers:
         raise ValueError("nothing to render: no meshes given")
     ss = max(int(supersample), 1)
-    all_pts = np.concatenate([np.asarray(L.vertices, dtype=np.float64).reshape(-1, 3) for L in layers])
+    all_pts = np.concatenate(
+        [np.asarray(L.vertices, dtype=np.float64).reshape(-1, 3) for L in layers]
+    )
     if cam is None:
         cam = camera(view, all_pts, width, height, bounds=bounds)
     W, H = cam.width * ss, cam.height * ss
@@ -393,7 +419,7 @@ def rasterize(meshes, view="front", width: int = 512, height: int = 512, *,
     cy = row + 0.5
     xl = np.full(tri_r.size, np.inf)
     xr = np.full(tri_r.size, -np.inf)
-    for (xa, ya, xb, yb) in ((x0, y0, x1, y1), (x1, y1, x2, y2), (x2, y2, x0, y0)):
+    for xa, ya, xb, yb in ((x0, y0, x1, y1), (x1, y1, x2, y2), (x2, y2, x0, y0)):
         xa_, ya_, xb_, yb_ = xa[tri_r], ya[tri_r], xb[tri_r], yb[tri_r]
         lo, hi = np.minimum(ya_, yb_), np.maximum(ya_, yb_)
         ok = (cy >= lo) & (cy <= hi) & (hi > lo)
@@ -406,7 +432,7 @@ def rasterize(meshes, view="front", width: int = 512, height: int = 512, *,
     ncol = np.where(np.isfinite(xl), np.maximum(c1 - c0 + 1, 0), 0)
 
     zbuf = np.full(W * H, -np.inf)
-    owner = np.full(W * H, -1, dtype=np.int64)   # winning triangle per sample
+    owner = np.full(W * H, -1, dtype=np.int64)  # winning triangle per sample
     bary_best = np.zeros((W * H, 2))
 
     # 2) pixels of the spans, in chunks so memory stays bounded
@@ -474,7 +500,9 @@ def _landmark_arrays(landmarks) -> tuple[list[str], np.ndarray]:
     if landmarks is None:
         return [], np.zeros((0, 3))
     if hasattr(landmarks, "names") and hasattr(landmarks, "positions"):
-        return list(landmarks.names), np.asarray(landmarks.positions, dtype=np.float64).reshape(-1, 3)
+        return list(landmarks.names), np.asarray(landmarks.positions, dtype=np.float64).reshape(
+            -1, 3
+        )
     if isinstance(landmarks, Mapping):
         names = list(landmarks)
         return names, np.asarray([landmarks[k] for k in names], dtype=np.float64).reshape(-1, 3)
@@ -482,12 +510,26 @@ def _landmark_arrays(landmarks) -> tuple[list[str], np.ndarray]:
     return [str(i) for i in range(len(arr))], arr
 
 
-def draw(ax, meshes, view="front", *, width: int = 512, height: int = 512,
-         landmarks=None, labels: bool = False, hidden_landmarks: bool = False,
-         landmark_color="tab:red", polylines: Sequence[np.ndarray] | None = None,
-         polyline_colors=None, polyline_width: float = 1.5, bounds=None,
-         title: str | None = None, supersample: int = 2, render: Render | None = None,
-         label_fontsize: float = 5.5) -> Render:
+def draw(
+    ax,
+    meshes,
+    view="front",
+    *,
+    width: int = 512,
+    height: int = 512,
+    landmarks=None,
+    labels: bool = False,
+    hidden_landmarks: bool = False,
+    landmark_color="tab:red",
+    polylines: Sequence[np.ndarray] | None = None,
+    polyline_colors=None,
+    polyline_width: float = 1.5,
+    bounds=None,
+    title: str | None = None,
+    supersample: int = 2,
+    render: Render | None = None,
+    label_fontsize: float = 5.5,
+) -> Render:
     """Render ``meshes`` and show them in the matplotlib axes ``ax``.
 
     Args:
@@ -519,27 +561,59 @@ def draw(ax, meshes, view="front", *, width: int = 512, height: int = 512,
     if len(pts):
         proj = render.project(pts)
         vis = render.visible(pts)
-        ax.scatter(proj[vis, 0] - 0.5, proj[vis, 1] - 0.5, s=14, c=landmark_color,
-                   edgecolors="white", linewidths=0.5, zorder=3)
+        ax.scatter(
+            proj[vis, 0] - 0.5,
+            proj[vis, 1] - 0.5,
+            s=14,
+            c=landmark_color,
+            edgecolors="white",
+            linewidths=0.5,
+            zorder=3,
+        )
         if hidden_landmarks and (~vis).any():
-            ax.scatter(proj[~vis, 0] - 0.5, proj[~vis, 1] - 0.5, s=12, facecolors="none",
-                       edgecolors=landmark_color, linewidths=0.6, alpha=0.6, zorder=3)
+            ax.scatter(
+                proj[~vis, 0] - 0.5,
+                proj[~vis, 1] - 0.5,
+                s=12,
+                facecolors="none",
+                edgecolors=landmark_color,
+                linewidths=0.6,
+                alpha=0.6,
+                zorder=3,
+            )
         if labels:
             for name, (c, r, _), v in zip(names, proj, vis):
                 if v:
-                    ax.annotate(name, (c - 0.5, r - 0.5), xytext=(3, 2), textcoords="offset points",
-                                fontsize=label_fontsize, color="black", zorder=4)
+                    ax.annotate(
+                        name,
+                        (c - 0.5, r - 0.5),
+                        xytext=(3, 2),
+                        textcoords="offset points",
+                        fontsize=label_fontsize,
+                        color="black",
+                        zorder=4,
+                    )
     if polylines:
         cols = polyline_colors
-        if cols is None or isinstance(cols, str) or (np.ndim(cols) == 1 and len(cols) in (3, 4)
-                                                     and not isinstance(cols[0], str)):
+        if (
+            cols is None
+            or isinstance(cols, str)
+            or (np.ndim(cols) == 1 and len(cols) in (3, 4) and not isinstance(cols[0], str))
+        ):
             cols = [cols if cols is not None else "tab:blue"] * len(polylines)
         for line, c in zip(polylines, cols):
             line = np.asarray(line, dtype=np.float64).reshape(-1, 3)
             pr = render.project(line)
             vis = render.visible(line, tol=3.0)
-            ax.plot(pr[:, 0] - 0.5, pr[:, 1] - 0.5, color=c, lw=polyline_width * 0.6,
-                    ls=(0, (2, 2)), alpha=0.5, zorder=2)
+            ax.plot(
+                pr[:, 0] - 0.5,
+                pr[:, 1] - 0.5,
+                color=c,
+                lw=polyline_width * 0.6,
+                ls=(0, (2, 2)),
+                alpha=0.5,
+                zorder=2,
+            )
             vv = np.where(vis, pr[:, 1] - 0.5, np.nan)
             ax.plot(pr[:, 0] - 0.5, vv, color=c, lw=polyline_width, zorder=2)
     ax.set_xlim(-0.5, render.camera.width - 0.5)
@@ -554,12 +628,24 @@ def _scalar_layer(layers: list[Layer]) -> Layer | None:
     return None
 
 
-def figure_views(meshes, views: Sequence = ("front", "side"), *, landmarks=None,
-                 labels: bool = False, scalars: np.ndarray | None = None, cmap: str = "viridis",
-                 vmin: float | None = None, vmax: float | None = None,
-                 colorbar_label: str = "mm", title: str | None = None,
-                 panel_px: int = 480, titles: Sequence[str] | None = None,
-                 polylines=None, polyline_colors=None, bounds=None):
+def figure_views(
+    meshes,
+    views: Sequence = ("front", "side"),
+    *,
+    landmarks=None,
+    labels: bool = False,
+    scalars: np.ndarray | None = None,
+    cmap: str = "viridis",
+    vmin: float | None = None,
+    vmax: float | None = None,
+    colorbar_label: str = "mm",
+    title: str | None = None,
+    panel_px: int = 480,
+    titles: Sequence[str] | None = None,
+    polylines=None,
+    polyline_colors=None,
+    bounds=None,
+):
     """A matplotlib figure with one panel per view (front + side by default).
 
     Args:
@@ -578,34 +664,62 @@ def figure_views(meshes, views: Sequence = ("front", "side"), *, landmarks=None,
     Returns:
         ``matplotlib.figure.Figure``.
     """
-    from matplotlib.figure import Figure
     import matplotlib
+    from matplotlib.figure import Figure
 
     layers = as_layers(meshes)
     if scalars is not None:
-        layers[0] = dataclasses.replace(layers[0], scalars=np.asarray(scalars), cmap=cmap,
-                                        vmin=vmin, vmax=vmax, shade=0.55, specular=0.04)
+        layers[0] = dataclasses.replace(
+            layers[0],
+            scalars=np.asarray(scalars),
+            cmap=cmap,
+            vmin=vmin,
+            vmax=vmax,
+            shade=0.55,
+            specular=0.04,
+        )
     sl = _scalar_layer(layers)
     n = len(views)
     dpi = 100
     cb_w = 1.0 if sl is not None else 0.0
-    fig = Figure(figsize=(n * panel_px / dpi + cb_w, panel_px / dpi + (0.35 if title else 0.1)), dpi=dpi)
+    fig = Figure(
+        figsize=(n * panel_px / dpi + cb_w, panel_px / dpi + (0.35 if title else 0.1)), dpi=dpi
+    )
     axes = fig.subplots(1, n, squeeze=False)[0]
     if bounds is None:
         allp = np.concatenate([np.asarray(L.vertices).reshape(-1, 3) for L in layers])
         bounds = np.stack([allp.min(0), allp.max(0)])
-    fig.subplots_adjust(left=0.005, right=0.995 - (0.9 / fig.get_figwidth() if sl is not None else 0.0),
-                        bottom=0.005, top=0.99 - (0.35 / fig.get_figheight() if title else 0.0) - 0.04,
-                        wspace=0.02)
+    fig.subplots_adjust(
+        left=0.005,
+        right=0.995 - (0.9 / fig.get_figwidth() if sl is not None else 0.0),
+        bottom=0.005,
+        top=0.99 - (0.35 / fig.get_figheight() if title else 0.0) - 0.04,
+        wspace=0.02,
+    )
     for i, (ax, v) in enumerate(zip(axes, views)):
-        name = titles[i] if titles is not None else (v if isinstance(v, str) else f"az {v[0]:g}, el {v[1]:g}")
-        draw(ax, layers, v, width=panel_px, height=panel_px, landmarks=landmarks,
-             labels=labels and i == 0, title=name, polylines=polylines,
-             polyline_colors=polyline_colors, bounds=bounds)
+        name = (
+            titles[i]
+            if titles is not None
+            else (v if isinstance(v, str) else f"az {v[0]:g}, el {v[1]:g}")
+        )
+        draw(
+            ax,
+            layers,
+            v,
+            width=panel_px,
+            height=panel_px,
+            landmarks=landmarks,
+            labels=labels and i == 0,
+            title=name,
+            polylines=polylines,
+            polyline_colors=polyline_colors,
+            bounds=bounds,
+        )
     if sl is not None:
         lo, hi = sl.scalar_range()
-        sm = matplotlib.cm.ScalarMappable(norm=matplotlib.colors.Normalize(lo, hi),
-                                          cmap=matplotlib.colormaps[sl.cmap])
+        sm = matplotlib.cm.ScalarMappable(
+            norm=matplotlib.colors.Normalize(lo, hi), cmap=matplotlib.colormaps[sl.cmap]
+        )
         cax = fig.add_axes([1.0 - 0.75 / fig.get_figwidth(), 0.12, 0.18 / fig.get_figwidth(), 0.72])
         cbar = fig.colorbar(sm, cax=cax)
         cbar.set_label(colorbar_label)
@@ -650,8 +764,15 @@ SCLERA = (0.94, 0.93, 0.90)
 TEETH = (0.95, 0.93, 0.84)
 
 
-def eye_colors(vertices: np.ndarray, center: np.ndarray, gaze=(0.0, 0.0, 1.0), *,
-               iris_deg: float = 28.0, pupil_deg: float = 11.0, iris=IRIS) -> np.ndarray:
+def eye_colors(
+    vertices: np.ndarray,
+    center: np.ndarray,
+    gaze=(0.0, 0.0, 1.0),
+    *,
+    iris_deg: float = 28.0,
+    pupil_deg: float = 11.0,
+    iris=IRIS,
+) -> np.ndarray:
     """``(V, 3)`` RGB of an eyeball mesh: pupil, iris and sclera by the angle between each
     vertex direction (from ``center``, mm) and the gaze direction."""
     d = np.asarray(vertices, dtype=np.float64) - np.asarray(center, dtype=np.float64)
@@ -660,7 +781,7 @@ def eye_colors(vertices: np.ndarray, center: np.ndarray, gaze=(0.0, 0.0, 1.0), *
     g = g / np.linalg.norm(g)
     ang = np.degrees(np.arccos(np.clip(d @ g, -1.0, 1.0)))
     col = np.tile(np.asarray(SCLERA), (len(d), 1))
-    t = _smooth01((iris_deg + 1.5 - ang) / 3.0)          # soft limbus
+    t = _smooth01((iris_deg + 1.5 - ang) / 3.0)  # soft limbus
     col = col * (1 - t[:, None]) + np.asarray(iris) * t[:, None]
     p = _smooth01((pupil_deg + 1.0 - ang) / 2.0)
     col = col * (1 - p[:, None]) + 0.04 * p[:, None]
@@ -672,9 +793,21 @@ def _smooth01(t):
     return t * t * (3 - 2 * t)
 
 
-def head_layers(head, *, skin=None, scalars=None, cmap: str = "viridis", vmin=None, vmax=None,
-                skin_color=SKIN, eyes=None, upper_teeth=None, lower_teeth=None,
-                show_eyes: bool = True, show_teeth: bool = True) -> list[Layer]:
+def head_layers(
+    head,
+    *,
+    skin=None,
+    scalars=None,
+    cmap: str = "viridis",
+    vmin=None,
+    vmax=None,
+    skin_color=SKIN,
+    eyes=None,
+    upper_teeth=None,
+    lower_teeth=None,
+    show_eyes: bool = True,
+    show_teeth: bool = True,
+) -> list[Layer]:
     """Layers for a :class:`jaxface.head.Head`: skin, eyeballs (with iris and pupil) and teeth.
 
     Any part can be given as deformed ``(V, 3)`` vertex positions (mm) of the same topology
@@ -682,18 +815,45 @@ def head_layers(head, *, skin=None, scalars=None, cmap: str = "viridis", vmin=No
     expression. ``scalars`` (``(V,)``, e.g. an error in mm) colour the skin through ``cmap``.
     """
     sv = head.mesh.vertices if skin is None else np.asarray(skin)
-    layers = [Layer(sv, head.mesh.triangles, color=skin_color, scalars=scalars, cmap=cmap,
-                    vmin=vmin, vmax=vmax, shade=0.55 if scalars is not None else 1.0,
-                    specular=0.04 if scalars is not None else 0.12, label="skin")]
+    layers = [
+        Layer(
+            sv,
+            head.mesh.triangles,
+            color=skin_color,
+            scalars=scalars,
+            cmap=cmap,
+            vmin=vmin,
+            vmax=vmax,
+            shade=0.55 if scalars is not None else 1.0,
+            specular=0.04 if scalars is not None else 0.12,
+            label="skin",
+        )
+    ]
     if show_eyes:
         for k, (mesh, c) in enumerate(zip(head.eyes, head.eye_centers)):
             v = mesh.vertices if eyes is None else np.asarray(eyes[k])
             shift = v.mean(axis=0) - mesh.vertices.mean(axis=0)
-            layers.append(Layer(v, mesh.triangles, colors=eye_colors(v, c + shift),
-                                specular=0.35, label=f"eye_{'left' if k == 0 else 'right'}"))
+            layers.append(
+                Layer(
+                    v,
+                    mesh.triangles,
+                    colors=eye_colors(v, c + shift),
+                    specular=0.35,
+                    label=f"eye_{'left' if k == 0 else 'right'}",
+                )
+            )
     if show_teeth:
-        for mesh, v, name in ((head.upper_teeth, upper_teeth, "upper_teeth"),
-                              (head.lower_teeth, lower_teeth, "lower_teeth")):
-            layers.append(Layer(mesh.vertices if v is None else np.asarray(v), mesh.triangles,
-                                color=TEETH, specular=0.2, label=name))
+        for mesh, v, name in (
+            (head.upper_teeth, upper_teeth, "upper_teeth"),
+            (head.lower_teeth, lower_teeth, "lower_teeth"),
+        ):
+            layers.append(
+                Layer(
+                    mesh.vertices if v is None else np.asarray(v),
+                    mesh.triangles,
+                    color=TEETH,
+                    specular=0.2,
+                    label=name,
+                )
+            )
     return layers

@@ -19,8 +19,8 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -28,15 +28,31 @@ __all__ = ["SYNTHETIC_SCANS", "run_showcase"]
 
 #: synthetic expression scans the demo makes and fits back: name -> (activations, jaw pose)
 SYNTHETIC_SCANS: dict[str, tuple[dict[str, float], tuple[float, float, float]]] = {
-    "demo_E_HAPPY_0": ({"zygomaticus_major_L": 0.7, "zygomaticus_major_R": 0.7,
-                        "orbicularis_oculi_L": 0.3, "orbicularis_oculi_R": 0.3}, (2.0, 0.0, 0.0)),
-    "demo_E_SURPRISE_0": ({"frontalis_medial_L": 0.7, "frontalis_medial_R": 0.7,
-                           "frontalis_lateral_L": 0.5, "frontalis_lateral_R": 0.5}, (9.0, 0.0, 0.0)),
+    "demo_E_HAPPY_0": (
+        {
+            "zygomaticus_major_L": 0.7,
+            "zygomaticus_major_R": 0.7,
+            "orbicularis_oculi_L": 0.3,
+            "orbicularis_oculi_R": 0.3,
+        },
+        (2.0, 0.0, 0.0),
+    ),
+    "demo_E_SURPRISE_0": (
+        {
+            "frontalis_medial_L": 0.7,
+            "frontalis_medial_R": 0.7,
+            "frontalis_lateral_L": 0.5,
+            "frontalis_lateral_R": 0.5,
+        },
+        (9.0, 0.0, 0.0),
+    ),
     "demo_LFAU_12L_0": ({"zygomaticus_major_L": 0.6}, (0.0, 0.0, 0.0)),
 }
 
 
-def run_showcase(out, *, fit: bool = True, panel_px: int = 600, progress: Callable[[str], None] | None = None) -> dict:
+def run_showcase(
+    out, *, fit: bool = True, panel_px: int = 600, progress: Callable[[str], None] | None = None
+) -> dict:
     """Run the showcase into folder ``out``; returns the report dict (also ``report.json``).
 
     Args:
@@ -47,7 +63,12 @@ def run_showcase(out, *, fit: bool = True, panel_px: int = 600, progress: Callab
     """
     import jax
 
-    from .anatomy.pictures import emotion_pictures, expression_sheet, jaw_diagram, muscle_map_picture
+    from .anatomy.pictures import (
+        emotion_pictures,
+        expression_sheet,
+        jaw_diagram,
+        muscle_map_picture,
+    )
     from .anatomy.rig import build_rig
     from .head import generic_head, save_head
 
@@ -56,8 +77,11 @@ def run_showcase(out, *, fit: bool = True, panel_px: int = 600, progress: Callab
     out.mkdir(parents=True, exist_ok=True)
     t_all = time.perf_counter()
     timings: dict[str, float] = {}
-    report: dict = {"units": "mm", "frame": "+y up, face looks along +z, subject's left is +x",
-                    "files": {}}
+    report: dict = {
+        "units": "mm",
+        "frame": "+y up, face looks along +z, subject's left is +x",
+        "files": {},
+    }
 
     def timed(key, fn, *a, **kw):
         t = time.perf_counter()
@@ -69,15 +93,20 @@ def run_showcase(out, *, fit: bool = True, panel_px: int = 600, progress: Callab
     head = timed("head_s", generic_head)
     files = save_head(head, out, picture=True, panel_px=panel_px)
     report["files"].update({k: Path(v).name for k, v in files.items()})
-    report["head"] = {"vertices": head.mesh.n_vertices, "triangles": head.mesh.n_triangles,
-                      "landmarks": len(head.landmarks.names)}
+    report["head"] = {
+        "vertices": head.mesh.n_vertices,
+        "triangles": head.mesh.n_triangles,
+        "landmarks": len(head.landmarks.names),
+    }
 
     say("building the rig (skull, jaw, muscle map, skin binding)")
     rig = timed("rig_s", build_rig, head)
     report["rig"] = {"controls": list(rig.muscle_names), "n_controls": rig.n_controls}
 
     say("drawing the muscle map and the jaw model")
-    report["files"]["muscle_map"] = timed("muscle_map_s", muscle_map_picture, out / "muscle_map.png", rig).name
+    report["files"]["muscle_map"] = timed(
+        "muscle_map_s", muscle_map_picture, out / "muscle_map.png", rig
+    ).name
     report["files"]["jaw"] = timed("jaw_s", jaw_diagram, out / "jaw.png", rig).name
 
     say("synthesising and rendering the six emotions")
@@ -85,8 +114,17 @@ def run_showcase(out, *, fit: bool = True, panel_px: int = 600, progress: Callab
     report["files"]["emotions"] = [p.name for p in paths]
     say("synthesising and rendering single action units")
     aus = ["AU1", "AU2", "AU4", "AU6", "AU9", "AU10", "AU12", "AU15", "AU20", "AU26"]
-    p = timed("aus_s", expression_sheet, out / "aus.png", rig, [(a, {a: 1.0}) for a in aus],
-              views=("front",), ncol=5, title="single action units (intensity 1)", head=head)
+    p = timed(
+        "aus_s",
+        expression_sheet,
+        out / "aus.png",
+        rig,
+        [(a, {a: 1.0}) for a in aus],
+        views=("front",),
+        ncol=5,
+        title="single action units (intensity 1)",
+        head=head,
+    )
     report["files"]["aus"] = p.name
 
     if fit:
@@ -132,8 +170,9 @@ def _scan_and_fit(rig, head, out: Path, say, timings) -> list[dict]:
 
     say("preparing the fit (reduced model of the rig)")
     t = time.perf_counter()
-    subject = subject_from_rig(rig, neutral, face_mask=head.face_mask,
-                               options=SubjectOptions(levels=3, pitch_knots=8))
+    subject = subject_from_rig(
+        rig, neutral, face_mask=head.face_mask, options=SubjectOptions(levels=3, pitch_knots=8)
+    )
     timings["subject_s"] = time.perf_counter() - t
     say(f"fitting {len(scans)} scans back (one batch)")
     t = time.perf_counter()
@@ -148,43 +187,64 @@ def _scan_and_fit(rig, head, out: Path, say, timings) -> list[dict]:
         err = np.linalg.norm(np.asarray(r.fitted.vertices)[fm] - x_true[fm], axis=1)
         a_fit = np.array([r.activations[n] for n in names])
         big = [n for n, v in zip(names, a_true) if v > 0]
-        rows.append({
-            "stem": r.stem,
-            "status": r.status,
-            "scan_to_fit_mean_mm": r.metrics.scan_to_fit["all"].mean,
-            "skin_error_mm": {"mean": float(err.mean()), "max": float(err.max())},
-            "jaw_true": dict(zip(("pitch_deg", "yaw_deg", "protrusion_mm"), jaw_true)),
-            "jaw_fit": r.jaw,
-            "activations_true": {n: float(v) for n, v in zip(names, a_true) if v > 0},
-            "activations_fit": {n: r.activations[n] for n in big},
-            "max_activation_error": float(np.abs(a_fit - a_true).max()),
-            "strongest_aus": r.strongest_aus(4, bilateral_only=False),
-            "most_visible_aus_mm": r.strongest_aus(4, bilateral_only=True, by="motion"),
-            "sparse_aus": r.strongest_aus(4, bilateral_only=True, by="sparse"),
-            "files": {k: str(Path(v).relative_to(out)) for k, v in files.items()},
-        })
+        rows.append(
+            {
+                "stem": r.stem,
+                "status": r.status,
+                "scan_to_fit_mean_mm": r.metrics.scan_to_fit["all"].mean,
+                "skin_error_mm": {"mean": float(err.mean()), "max": float(err.max())},
+                "jaw_true": dict(zip(("pitch_deg", "yaw_deg", "protrusion_mm"), jaw_true)),
+                "jaw_fit": r.jaw,
+                "activations_true": {n: float(v) for n, v in zip(names, a_true) if v > 0},
+                "activations_fit": {n: r.activations[n] for n in big},
+                "max_activation_error": float(np.abs(a_fit - a_true).max()),
+                "strongest_aus": r.strongest_aus(4, bilateral_only=False),
+                "most_visible_aus_mm": r.strongest_aus(4, bilateral_only=True, by="motion"),
+                "sparse_aus": r.strongest_aus(4, bilateral_only=True, by="sparse"),
+                "files": {k: str(Path(v).relative_to(out)) for k, v in files.items()},
+            }
+        )
     return rows
 
 
 def _markdown(rep: dict) -> str:
-    L = ["# jaxface demo report", "",
-         f"Default head: {rep['head']['vertices']} vertices, {rep['head']['landmarks']} landmarks; "
-         f"rig with {rep['rig']['n_controls']} muscle controls. Units: mm, degrees. Frame: {rep['frame']}.", "",
-         "## Anatomy: muscle map and jaw", "", "![muscle map](muscle_map.png)", "", "![jaw](jaw.png)", "",
-         "## Forward: emotions and action units", "", "![emotions](emotions.png)", "", "![aus](aus.png)", ""]
+    L = [
+        "# jaxface demo report",
+        "",
+        f"Default head: {rep['head']['vertices']} vertices, {rep['head']['landmarks']} landmarks; "
+        f"rig with {rep['rig']['n_controls']} muscle controls. Units: mm, degrees. Frame: {rep['frame']}.",
+        "",
+        "## Anatomy: muscle map and jaw",
+        "",
+        "![muscle map](muscle_map.png)",
+        "",
+        "![jaw](jaw.png)",
+        "",
+        "## Forward: emotions and action units",
+        "",
+        "![emotions](emotions.png)",
+        "",
+        "![aus](aus.png)",
+        "",
+    ]
     if rep.get("fits"):
-        L += ["## Inverse: synthetic Bosphorus-style scans fitted back", "",
-              "| scan | status | scan -> fit (mm) | skin error mean / max (mm) | jaw pitch true / fit (deg) | "
-              "max activation error | strongest AUs | most visible AUs (mm) | fewest AUs for the motion |",
-              "|---|---|---|---|---|---|---|---|---|"]
+        L += [
+            "## Inverse: synthetic Bosphorus-style scans fitted back",
+            "",
+            "| scan | status | scan -> fit (mm) | skin error mean / max (mm) | jaw pitch true / fit (deg) | "
+            "max activation error | strongest AUs | most visible AUs (mm) | fewest AUs for the motion |",
+            "|---|---|---|---|---|---|---|---|---|",
+        ]
         for f in rep["fits"]:
             aus = ", ".join(f"{k} {v:.2f}" for k, v in f["strongest_aus"])
             vis = ", ".join(f"{k} {v:.2f}" for k, v in f["most_visible_aus_mm"])
             spa = ", ".join(f"{k} {v:.2f}" for k, v in f["sparse_aus"])
-            L.append(f"| {f['stem']} | {f['status']} | {f['scan_to_fit_mean_mm']:.3f} | "
-                     f"{f['skin_error_mm']['mean']:.3f} / {f['skin_error_mm']['max']:.2f} | "
-                     f"{f['jaw_true']['pitch_deg']:.1f} / {f['jaw_fit']['pitch_deg']:.2f} | "
-                     f"{f['max_activation_error']:.3f} | {aus} | {vis} | {spa} |")
+            L.append(
+                f"| {f['stem']} | {f['status']} | {f['scan_to_fit_mean_mm']:.3f} | "
+                f"{f['skin_error_mm']['mean']:.3f} / {f['skin_error_mm']['max']:.2f} | "
+                f"{f['jaw_true']['pitch_deg']:.1f} / {f['jaw_fit']['pitch_deg']:.2f} | "
+                f"{f['max_activation_error']:.3f} | {aus} | {vis} | {spa} |"
+            )
         L.append("")
         for f in rep["fits"]:
             if "picture" in f["files"]:

@@ -194,13 +194,13 @@ class SurfacePoints(eqx.Module):
         """``(K, 3)`` ids of the three vertices each point is attached to."""
         return jnp.asarray(triangles)[self.tri]
 
-    def take(self, index) -> "SurfacePoints":
+    def take(self, index) -> SurfacePoints:
         """A subset (or reordering) of the points: ``index`` is an int array or bool mask."""
         index = np.asarray(index)
         return SurfacePoints(self.tri[index], self.bary[index])
 
     @staticmethod
-    def concatenate(items) -> "SurfacePoints":
+    def concatenate(items) -> SurfacePoints:
         """Concatenate several SurfacePoints on the same mesh into one."""
         items = list(items)
         return SurfacePoints(
@@ -228,7 +228,7 @@ class SurfacePoints(eqx.Module):
             )
 
 
-def from_points(mesh: "TriMesh", points) -> tuple[SurfacePoints, np.ndarray]:
+def from_points(mesh: TriMesh, points) -> tuple[SurfacePoints, np.ndarray]:
     """Attach 3-D points to a mesh by closest-point projection.
 
     Args:

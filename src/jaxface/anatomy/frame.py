@@ -112,8 +112,12 @@ def _try_get(landmarks, name: str) -> np.ndarray | None:
 
 
 def _ear_lobe(landmarks, side: str) -> np.ndarray | None:
-    for name in (f"{side.capitalize()} ear lobe", f"{side} ear lobe", f"Ear lobe {side}",
-                 f"{side.capitalize()} earlobe"):
+    for name in (
+        f"{side.capitalize()} ear lobe",
+        f"{side} ear lobe",
+        f"Ear lobe {side}",
+        f"{side.capitalize()} earlobe",
+    ):
         p = _try_get(landmarks, name)
         if p is not None:
             return p
@@ -247,11 +251,14 @@ def face_frame(landmarks) -> FaceFrame:
         )
     axes = np.stack([x, y, z])
     # origin: eye centre moved onto the mid-sagittal plane of the landmarks
-    mids = [0.5 * (pts[a] + pts[b]) for a, b in (
-        ("Outer left eye corner", "Outer right eye corner"),
-        ("Inner left eye corner", "Inner right eye corner"),
-        ("Left mouth corner", "Right mouth corner"),
-    )] + [pts["Nose tip"], pts["Chin middle"], pts["Upper lip outer middle"]]
+    mids = [
+        0.5 * (pts[a] + pts[b])
+        for a, b in (
+            ("Outer left eye corner", "Outer right eye corner"),
+            ("Inner left eye corner", "Inner right eye corner"),
+            ("Left mouth corner", "Right mouth corner"),
+        )
+    ] + [pts["Nose tip"], pts["Chin middle"], pts["Upper lip outer middle"]]
     mid_x = float(np.median([(m - eye_mid) @ x for m in mids]))
     origin = eye_mid + x * mid_x
     biocular = float((lo - ro) @ x)
@@ -264,8 +271,7 @@ def face_frame(landmarks) -> FaceFrame:
     sx = biocular / REFERENCE_BIOCULAR_MM
     sy = chin_h / REFERENCE_EYE_TO_CHIN_MM
     scale = np.array([sx, sy, sx])
-    frame = FaceFrame(origin=origin, axes=axes, scale=scale, points=pts,
-                      condyles=np.zeros((2, 3)))
+    frame = FaceFrame(origin=origin, axes=axes, scale=scale, points=pts, condyles=np.zeros((2, 3)))
     cond = np.stack([frame.to_world(_CONDYLE), frame.to_world(_CONDYLE * [-1, 1, 1])])
     lobes = [_ear_lobe(landmarks, "left"), _ear_lobe(landmarks, "right")]
     if all(lb is not None for lb in lobes):

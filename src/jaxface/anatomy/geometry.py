@@ -39,8 +39,13 @@ def adjacency_matrix(mesh: TriMesh) -> sp.csr_matrix:
     return A.tocsr()
 
 
-def smooth_field(mesh: TriMesh, field: np.ndarray, iterations: int, lam: float = 0.5,
-                 fixed: np.ndarray | None = None) -> np.ndarray:
+def smooth_field(
+    mesh: TriMesh,
+    field: np.ndarray,
+    iterations: int,
+    lam: float = 0.5,
+    fixed: np.ndarray | None = None,
+) -> np.ndarray:
     """Umbrella (one-ring average) smoothing of a per-vertex field.
 
     Args:
@@ -84,7 +89,9 @@ class SegmentHits:
         self.hit, self.t, self.tri, self.bary, self.locations = hit, t, tri, bary, locations
 
 
-def segment_cast(mesh: TriMesh, origins, directions, max_dist, *, min_dist: float = 0.0) -> SegmentHits:
+def segment_cast(
+    mesh: TriMesh, origins, directions, max_dist, *, min_dist: float = 0.0
+) -> SegmentHits:
     """Cast bounded rays (segments) against a mesh and keep the first hit of each.
 
     :meth:`jaxface.mesh.TriMesh.ray_cast` limited to each segment (r-tree candidates along
@@ -110,11 +117,16 @@ def segment_cast(mesh: TriMesh, origins, directions, max_dist, *, min_dist: floa
     tbest = np.full(r, np.inf)
     tri = np.zeros(r, dtype=np.int64)
     bary = np.zeros((r, 3))
-    rays = np.flatnonzero(np.isfinite(nrm) & (nrm > 1e-300) & np.isfinite(o).all(axis=1)
-                          & (L > min_dist))
+    rays = np.flatnonzero(
+        np.isfinite(nrm) & (nrm > 1e-300) & np.isfinite(o).all(axis=1) & (L > min_dist)
+    )
     if rays.size and mesh.n_triangles:
-        h = mesh.ray_cast(o[rays], d[rays] / nrm[rays, None], min_distance=max(min_dist, 0.0),
-                          max_distance=float(L[rays].max()))
+        h = mesh.ray_cast(
+            o[rays],
+            d[rays] / nrm[rays, None],
+            min_distance=max(min_dist, 0.0),
+            max_distance=float(L[rays].max()),
+        )
         rr = rays[np.asarray(h.ray_index)]
         t = np.asarray(h.distances)
         keep = (t <= L[rr]) & (t > min_dist)
@@ -148,9 +160,17 @@ class RadialHits:
         self.directions = directions
 
 
-def radial_project(meshes, points, centre, *, directions=None, far: float = 80.0,
-                   reach: float | None = None, first: str = "outermost",
-                   fallback_closest: bool = True) -> RadialHits:
+def radial_project(
+    meshes,
+    points,
+    centre,
+    *,
+    directions=None,
+    far: float = 80.0,
+    reach: float | None = None,
+    first: str = "outermost",
+    fallback_closest: bool = True,
+) -> RadialHits:
     """Project points onto the first of several meshes along rays from outside.
 
     Each point ``p`` defines the inward direction ``d = normalize(centre - p)`` (or the given

@@ -113,6 +113,12 @@ def load_ict_face(npz_path, landmark_ids=None) -> ICTFace:
         m = TriMesh(V, tt, validate=False)
         return m.submesh(mask)[0]
 
-    return ICTFace(skin=skin, landmarks=lm, upper_teeth=sub(upper_mask), lower_teeth=sub(~upper_mask),
-                   neutral=X, expression_names=tuple(str(n) for n in d["expression_names"]),
-                   expression_deltas=np.asarray(d["expression_deltas"]))
+    return ICTFace(
+        skin=skin,
+        landmarks=lm,
+        upper_teeth=sub(upper_mask),
+        lower_teeth=sub(~upper_mask),
+        neutral=X,
+        expression_names=tuple(str(n) for n in d["expression_names"]),
+        expression_deltas=np.asarray(d["expression_deltas"]),
+    )

@@ -30,8 +30,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .frame import FaceFrame, face_frame
 from .._arrays import to_jax
+from .frame import FaceFrame, face_frame
 
 __all__ = [
     "JawPose",
@@ -102,7 +102,7 @@ class JawPose(eqx.Module):
         self.protrusion_mm = jnp.asarray(protrusion_mm, dtype=dt)
 
     @staticmethod
-    def neutral() -> "JawPose":
+    def neutral() -> JawPose:
         """The closed, centred jaw (all zeros)."""
         return JawPose(0.0, 0.0, 0.0)
 
@@ -111,7 +111,7 @@ class JawPose(eqx.Module):
         return jnp.stack([self.pitch_deg, self.yaw_deg, self.protrusion_mm], axis=-1)
 
     @staticmethod
-    def from_array(a) -> "JawPose":
+    def from_array(a) -> JawPose:
         """Inverse of :meth:`as_array`: ``(..., 3)`` [pitch_deg, yaw_deg, protrusion_mm]."""
         a = jnp.asarray(a)
         return JawPose(a[..., 0], a[..., 1], a[..., 2])
@@ -140,7 +140,7 @@ class JawModel(eqx.Module):
     softness_mm: float = eqx.field(static=True, default=0.1)
 
     @staticmethod
-    def from_landmarks(landmarks, *, condyles=None, **limits) -> "JawModel":
+    def from_landmarks(landmarks, *, condyles=None, **limits) -> JawModel:
         """Build the jaw of a face from its Bosphorus landmarks.
 
         Args:
@@ -161,15 +161,22 @@ class JawModel(eqx.Module):
         yaw = yaw / np.linalg.norm(yaw)
         prot = frame.landmark("Chin middle") - frame.spine_top
         prot = prot / np.linalg.norm(prot)
-        return JawModel(to_jax(pivot), to_jax(pitch), to_jax(yaw),
-                        to_jax(prot), **{k: tuple(v) if isinstance(v, (list, tuple)) else v
-                                              for k, v in limits.items()})
+        return JawModel(
+            to_jax(pivot),
+            to_jax(pitch),
+            to_jax(yaw),
+            to_jax(prot),
+            **{k: tuple(v) if isinstance(v, (list, tuple)) else v for k, v in limits.items()},
+        )
 
     @property
     def limits(self) -> dict:
         """``{"pitch_deg": (lo, hi), "yaw_deg": (lo, hi), "protrusion_mm": (lo, hi)}``."""
-        return {"pitch_deg": tuple(self.pitch_limits), "yaw_deg": tuple(self.yaw_limits),
-                "protrusion_mm": tuple(self.protrusion_limits)}
+        return {
+            "pitch_deg": tuple(self.pitch_limits),
+            "yaw_deg": tuple(self.yaw_limits),
+            "protrusion_mm": tuple(self.protrusion_limits),
+        }
 
     def clamp(self, pose: JawPose) -> JawPose:
         """The effective pose after smooth clamping into the limits (same pytree shape)."""

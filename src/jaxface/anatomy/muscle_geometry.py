@@ -174,6 +174,7 @@ def grid_topology(w: int, h: int, periodic: bool = False) -> MuscleGrid:
             tris += [(A, C, B), (A, D, C)]
             sh_l += [(a, c), (bb, d)]
             sh_u += [(A, C), (B, D)]
+
     # side walls along the boundary loop(s)
     def wall(p0, p1):
         # bottom edge p0 -> p1 with top above: two triangles
@@ -189,11 +190,11 @@ def grid_topology(w: int, h: int, periodic: bool = False) -> MuscleGrid:
             conn += [(b(0, j), t(0, j)), (b(h - 1, j), t(h - 1, j))]
     else:
         for j in range(w - 1):
-            walls += wall(b(0, j + 1), b(0, j))            # origin end (i = 0)
-            walls += wall(b(h - 1, j), b(h - 1, j + 1))    # insertion end
+            walls += wall(b(0, j + 1), b(0, j))  # origin end (i = 0)
+            walls += wall(b(h - 1, j), b(h - 1, j + 1))  # insertion end
         for i in range(h - 1):
-            walls += wall(b(i, 0), b(i + 1, 0))            # fibre j = 0 side
-            walls += wall(b(i + 1, w - 1), b(i, w - 1))    # fibre j = w-1 side
+            walls += wall(b(i, 0), b(i + 1, 0))  # fibre j = 0 side
+            walls += wall(b(i + 1, w - 1), b(i, w - 1))  # fibre j = w-1 side
         ring = set()
         for i in range(h):
             for j in range(w):
@@ -202,13 +203,27 @@ def grid_topology(w: int, h: int, periodic: bool = False) -> MuscleGrid:
         conn = sorted(ring)
     tris = np.array(tris + walls, dtype=np.int64)
     arr = lambda x: np.array(x, dtype=np.int64).reshape(-1, 2)  # noqa: E731
-    return MuscleGrid(w, h, periodic, tris, arr(lat_u), arr(lon_u), arr(lat_l), arr(lon_l),
-                      arr(conn), arr(sh_u), arr(sh_l))
+    return MuscleGrid(
+        w,
+        h,
+        periodic,
+        tris,
+        arr(lat_u),
+        arr(lon_u),
+        arr(lat_l),
+        arr(lon_l),
+        arr(conn),
+        arr(sh_u),
+        arr(sh_l),
+    )
 
 
 def ellipse_points(centre, dir_a, dir_b, a: float, b: float, n: int) -> np.ndarray:
     """``(n, 3)`` points of the ellipse ``centre + a cos(phi) dir_a + b sin(phi) dir_b``,
     ``phi = 2 pi k / n`` (counter-clockwise seen from ``dir_a x dir_b``), mm."""
     phi = 2.0 * np.pi * np.arange(n) / n
-    return (np.asarray(centre)[None] + a * np.cos(phi)[:, None] * np.asarray(dir_a)[None]
-            + b * np.sin(phi)[:, None] * np.asarray(dir_b)[None])
+    return (
+        np.asarray(centre)[None]
+        + a * np.cos(phi)[:, None] * np.asarray(dir_a)[None]
+        + b * np.sin(phi)[:, None] * np.asarray(dir_b)[None]
+    )

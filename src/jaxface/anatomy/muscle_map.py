@@ -122,12 +122,16 @@ def _mirror_point(pt: dict | None) -> dict | None:
 
 def _check_point(pt, where: str, path) -> None:
     if not isinstance(pt, dict) or not isinstance(pt.get("at"), dict) or not pt["at"]:
-        raise RigError(f"muscle map {path}: {where} must be {{'at': {{label: weight}}, 'offset': "
-                       f"[x, y, z]}}, got {pt!r}.")
+        raise RigError(
+            f"muscle map {path}: {where} must be {{'at': {{label: weight}}, 'offset': "
+            f"[x, y, z]}}, got {pt!r}."
+        )
     w = np.array(list(pt["at"].values()), dtype=float)
     if not np.all(np.isfinite(w)) or w.sum() <= 0:
-        raise RigError(f"muscle map {path}: {where} has bad weights {pt['at']!r} (finite, "
-                       "positive sum needed).")
+        raise RigError(
+            f"muscle map {path}: {where} has bad weights {pt['at']!r} (finite, "
+            "positive sum needed)."
+        )
     off = pt.get("offset", [0, 0, 0])
     if len(off) != 3 or not np.all(np.isfinite(np.asarray(off, float))):
         raise RigError(f"muscle map {path}: {where} offset must be 3 finite numbers, got {off!r}.")
@@ -168,25 +172,34 @@ def load_muscle_map(path=None) -> list[MuscleSpec]:
             continue
         kind = m["kind"]
         if kind not in KINDS:
-            raise RigError(f"muscle map {p}: {where} has unknown kind {kind!r}; use one of {KINDS}.")
+            raise RigError(
+                f"muscle map {p}: {where} has unknown kind {kind!r}; use one of {KINDS}."
+            )
         d = dict(defaults.get(kind, {}))
         d.update(m)
         sides = d.get("sides", "both")
         if sides not in ("both", "mid", "left"):
-            raise RigError(f"muscle map {p}: {where} has sides={sides!r}; use 'both', 'mid', "
-                           "'left' or 'none'.")
+            raise RigError(
+                f"muscle map {p}: {where} has sides={sides!r}; use 'both', 'mid', 'left' or 'none'."
+            )
         if kind == "sphincter":
             _check_point(d.get("centre"), f"{where} centre", p)
             for key in ("inner", "outer"):
                 ax = d.get(key)
                 if ax is None or len(ax) != 2 or min(ax) <= 0:
-                    raise RigError(f"muscle map {p}: {where} needs positive '{key}' semi-axes [a, b].")
+                    raise RigError(
+                        f"muscle map {p}: {where} needs positive '{key}' semi-axes [a, b]."
+                    )
             if not (d["inner"][0] < d["outer"][0] and d["inner"][1] < d["outer"][1]):
-                raise RigError(f"muscle map {p}: {where}: the inner ellipse must lie inside the outer.")
+                raise RigError(
+                    f"muscle map {p}: {where}: the inner ellipse must lie inside the outer."
+                )
             na = d.get("n_around", 16)
             if isinstance(na, bool) or not isinstance(na, int) or na < 8:
-                raise RigError(f"muscle map {p}: {where} n_around must be a whole number of samples "
-                               f"around the ring, at least 8; got {na!r}.")
+                raise RigError(
+                    f"muscle map {p}: {where} n_around must be a whole number of samples "
+                    f"around the ring, at least 8; got {na!r}."
+                )
         elif kind != "eyelid":
             _check_point(d.get("origin"), f"{where} origin", p)
             _check_point(d.get("insertion"), f"{where} insertion", p)
@@ -196,8 +209,11 @@ def load_muscle_map(path=None) -> list[MuscleSpec]:
         grid = tuple(int(x) for x in d.get("grid", (2, 8)))
         if kind not in ("eyelid", "sphincter") and (len(grid) != 2 or min(grid) < 2):
             raise RigError(f"muscle map {p}: {where} grid must be [w >= 2, h >= 2], got {grid}.")
-        variants = [("left", "_L"), ("right", "_R")] if sides == "both" else (
-            [("left", "_L")] if sides == "left" else [("mid", "")])
+        variants = (
+            [("left", "_L"), ("right", "_R")]
+            if sides == "both"
+            else ([("left", "_L")] if sides == "left" else [("mid", "")])
+        )
         for side, suf in variants:
             mirror = side == "right"
             spec = MuscleSpec(
@@ -243,8 +259,10 @@ def check_sphincter_rings(specs, where: str = "") -> None:
     """
     around = {s.name: s.n_around for s in specs if s.kind == "sphincter"}
     if len(set(around.values())) > 1:
-        raise RigError(f"{where}all sphincters must have the same n_around (the rig stacks their rings); "
-                       f"got {around}. Set one value on each, or in defaults['sphincter'].")
+        raise RigError(
+            f"{where}all sphincters must have the same n_around (the rig stacks their rings); "
+            f"got {around}. Set one value on each, or in defaults['sphincter']."
+        )
 
 
 # ------------------------------------------------------------------------------ placement
@@ -355,12 +373,16 @@ def _resolve(frame: FaceFrame, pt: dict) -> np.ndarray:
             elif k in ("eye_centre", "eye_center"):
                 p = frame.origin
             else:
-                raise RigError(f"unknown pseudo-landmark {key!r} in the muscle map; use "
-                               "@condyle_left/right, @gonion_left/right, @menton, @eye_centre.")
+                raise RigError(
+                    f"unknown pseudo-landmark {key!r} in the muscle map; use "
+                    "@condyle_left/right, @gonion_left/right, @menton, @eye_centre."
+                )
         else:
             if key not in frame.points:
-                raise RigError(f"the muscle map refers to landmark {key!r}, which is not one of "
-                               f"the 22 Bosphorus face labels {sorted(frame.points)}.")
+                raise RigError(
+                    f"the muscle map refers to landmark {key!r}, which is not one of "
+                    f"the 22 Bosphorus face labels {sorted(frame.points)}."
+                )
             p = frame.points[key]
         acc += w * p
         wsum += w
@@ -388,12 +410,21 @@ class _Placer:
         n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
         return hits.positions, n
 
-    def to_support(self, skin_pts: np.ndarray, skin_n: np.ndarray, support: list[int]) -> ActionLine:
+    def to_support(
+        self, skin_pts: np.ndarray, skin_n: np.ndarray, support: list[int]
+    ) -> ActionLine:
         """Project skin-level points inward (along -normal) onto the support surfaces."""
         meshes = [self.registry.meshes[k] for k in support]
         start = skin_pts + 40.0 * self.frame.mean_scale * skin_n
-        hits = radial_project(meshes, start, None, directions=-skin_n, far=0.0,
-                              reach=80.0 * self.frame.mean_scale, fallback_closest=False)
+        hits = radial_project(
+            meshes,
+            start,
+            None,
+            directions=-skin_n,
+            far=0.0,
+            reach=80.0 * self.frame.mean_scale,
+            fallback_closest=False,
+        )
         surf = np.where(hits.mesh_index >= 0, np.asarray(support)[hits.mesh_index], -1)
         miss = np.flatnonzero(surf < 0)
         if miss.size:  # no support under these points: attach to the nearer skull part
@@ -407,7 +438,9 @@ class _Placer:
                 hits.tri[miss[better]] = np.asarray(sp_.tri)[better]
                 hits.bary[miss[better]] = np.asarray(sp_.bary)[better]
                 corners = m.vertices[m.triangles[np.asarray(sp_.tri)[better]]]
-                hits.positions[miss[better]] = np.einsum("kj,kjd->kd", np.asarray(sp_.bary)[better], corners)
+                hits.positions[miss[better]] = np.einsum(
+                    "kj,kjd->kd", np.asarray(sp_.bary)[better], corners
+                )
         normals = np.zeros_like(skin_pts)
         for k in np.unique(surf):
             sel = surf == k
@@ -415,8 +448,13 @@ class _Placer:
             vn = m.vertex_normals[m.triangles[hits.tri[sel]]]
             nn = np.einsum("kj,kjd->kd", hits.bary[sel], vn)
             normals[sel] = nn / np.maximum(np.linalg.norm(nn, axis=1, keepdims=True), 1e-12)
-        return ActionLine(hits.positions.copy(), normals, surf.astype(np.int64),
-                          hits.tri.astype(np.int64), hits.bary.copy())
+        return ActionLine(
+            hits.positions.copy(),
+            normals,
+            surf.astype(np.int64),
+            hits.tri.astype(np.int64),
+            hits.bary.copy(),
+        )
 
     def support_ids(self, spec: MuscleSpec, placed: dict) -> list[int]:
         ids = []
@@ -424,14 +462,19 @@ class _Placer:
             if sup == "skull":
                 ids += [0, 1]
                 continue
-            cands = [sup + "_L", sup + "_R", sup] if spec.side == "mid" else (
-                [sup + ("_L" if spec.side == "left" else "_R"), sup])
+            cands = (
+                [sup + "_L", sup + "_R", sup]
+                if spec.side == "mid"
+                else ([sup + ("_L" if spec.side == "left" else "_R"), sup])
+            )
             for c in cands:
                 if c in placed and placed[c].surface_id >= 0:
                     if placed[c].spec.layer >= spec.layer:
-                        raise RigError(f"muscle {spec.name} (layer {spec.layer}) lies on {c} "
-                                       f"(layer {placed[c].spec.layer}); a muscle can only lie "
-                                       "on deeper layers.")
+                        raise RigError(
+                            f"muscle {spec.name} (layer {spec.layer}) lies on {c} "
+                            f"(layer {placed[c].spec.layer}); a muscle can only lie "
+                            "on deeper layers."
+                        )
                     ids.append(placed[c].surface_id)
         if not ids:
             ids = [0, 1]
@@ -475,14 +518,24 @@ def _mirror_split(grid: MuscleGrid, x: np.ndarray) -> MuscleGrid:
     t[1:q:4][f] = np.stack([b, c, d], 1)[f]
     t[2:q:4][f] = np.stack([A, D, B], 1)[f]
     t[3:q:4][f] = np.stack([B, D, C], 1)[f]
-    p0, p1, p1n = s[q::2].T                 # walls: (p0, p1, p1 + n), (p0, p1 + n, p0 + n)
-    p0n = s[q + 1::2, 2]
+    p0, p1, p1n = s[q::2].T  # walls: (p0, p1, p1 + n), (p0, p1 + n, p0 + n)
+    p0n = s[q + 1 :: 2, 2]
     f = (x[p0] + x[p1]) < -1e-9
     t[q::2][f] = np.stack([p0, p1, p0n], 1)[f]
-    t[q + 1::2][f] = np.stack([p1, p1n, p0n], 1)[f]
-    return MuscleGrid(grid.w, grid.h, grid.periodic, t, grid.latitudinal_up, grid.longitudinal_up,
-                      grid.latitudinal_low, grid.longitudinal_low, grid.connection, grid.shear_up,
-                      grid.shear_low)
+    t[q + 1 :: 2][f] = np.stack([p1, p1n, p0n], 1)[f]
+    return MuscleGrid(
+        grid.w,
+        grid.h,
+        grid.periodic,
+        t,
+        grid.latitudinal_up,
+        grid.longitudinal_up,
+        grid.latitudinal_low,
+        grid.longitudinal_low,
+        grid.connection,
+        grid.shear_up,
+        grid.shear_low,
+    )
 
 
 def _build_mesh(pm: PlacedMuscle, grid: MuscleGrid, bottom: np.ndarray, normals: np.ndarray, frame):
@@ -490,9 +543,19 @@ def _build_mesh(pm: PlacedMuscle, grid: MuscleGrid, bottom: np.ndarray, normals:
     verts = np.concatenate([bottom, top])
     grid = _mirror_split(grid, frame.to_local(verts)[:, 0])
     tris = _orient(grid, verts)
-    pm.grid = MuscleGrid(grid.w, grid.h, grid.periodic, tris, grid.latitudinal_up,
-                         grid.longitudinal_up, grid.latitudinal_low, grid.longitudinal_low,
-                         grid.connection, grid.shear_up, grid.shear_low)
+    pm.grid = MuscleGrid(
+        grid.w,
+        grid.h,
+        grid.periodic,
+        tris,
+        grid.latitudinal_up,
+        grid.longitudinal_up,
+        grid.latitudinal_low,
+        grid.longitudinal_low,
+        grid.connection,
+        grid.shear_up,
+        grid.shear_low,
+    )
     pm.rest_vertices = verts
     pm.mesh = TriMesh(verts, tris, validate=False)
 
@@ -509,7 +572,7 @@ def _place_fibred(P: _Placer, spec: MuscleSpec, support: list[int], tscale: floa
     v = np.cross(nrm, u)
     v /= np.linalg.norm(v)
     w, h = spec.grid
-    wo, wi = (np.asarray(spec.width) * fr.scale[0])
+    wo, wi = np.asarray(spec.width) * fr.scale[0]
     # origin line (A3) and insertion line (A1) at the skin, sampled with w points (eq. 4.1)
     o_line = _line(o_s - 0.5 * wo * v, o_s + 0.5 * wo * v, w)
     i_line = _line(i_s - 0.5 * wi * v, i_s + 0.5 * wi * v, w)
@@ -522,8 +585,13 @@ def _place_fibred(P: _Placer, spec: MuscleSpec, support: list[int], tscale: floa
     bnorms = np.zeros((h, w, 3))
     for j in range(w):
         sl = slice(j * (seg + 1), (j + 1) * (seg + 1))
-        al = ActionLine(al_all.positions[sl], al_all.normals[sl], al_all.surface[sl],
-                        al_all.tri[sl], al_all.bary[sl])
+        al = ActionLine(
+            al_all.positions[sl],
+            al_all.normals[sl],
+            al_all.surface[sl],
+            al_all.tri[sl],
+            al_all.bary[sl],
+        )
         fibres.append(al)
         s, n = sample_polyline(al.positions, h, 0.0, normals=al.normals)
         bottoms[:, j] = s
@@ -534,19 +602,35 @@ def _place_fibred(P: _Placer, spec: MuscleSpec, support: list[int], tscale: floa
     ins = bottoms[-1] if k > 1 else bottoms[-1].mean(axis=0, keepdims=True)
     osk = o_line if k > 1 else o_s[None]
     isk = i_line if k > 1 else i_s[None]
-    pm = PlacedMuscle(spec=spec, origin=org, insertion=ins, origin_skin=osk, insertion_skin=isk,
-                      thickness=thickness, fibres=fibres)
+    pm = PlacedMuscle(
+        spec=spec,
+        origin=org,
+        insertion=ins,
+        origin_skin=osk,
+        insertion_skin=isk,
+        thickness=thickness,
+        fibres=fibres,
+    )
     _build_mesh(pm, grid_topology(w, h, False), bottoms.reshape(-1, 3), bnorms.reshape(-1, 3), fr)
     return pm
 
 
-def _place_sphincter(P: _Placer, spec: MuscleSpec, support: list[int], tscale: float) -> PlacedMuscle:
+def _place_sphincter(
+    P: _Placer, spec: MuscleSpec, support: list[int], tscale: float
+) -> PlacedMuscle:
     fr = P.frame
     c_guess = _resolve(fr, spec.centre)
     n = spec.n_around
-    (ai, bi), (ao, bo) = np.asarray(spec.inner) * fr.scale[:2], np.asarray(spec.outer) * fr.scale[:2]
-    guess = np.concatenate([ellipse_points(c_guess, fr.axes[0], fr.axes[1], a, b, n)
-                            for a, b in ((ai, bi), (0.5 * (ai + ao), 0.5 * (bi + bo)), (ao, bo))])
+    (ai, bi), (ao, bo) = (
+        np.asarray(spec.inner) * fr.scale[:2],
+        np.asarray(spec.outer) * fr.scale[:2],
+    )
+    guess = np.concatenate(
+        [
+            ellipse_points(c_guess, fr.axes[0], fr.axes[1], a, b, n)
+            for a, b in ((ai, bi), (0.5 * (ai + ao), 0.5 * (bi + bo)), (ao, bo))
+        ]
+    )
     sk, skn = P.to_skin(guess)
     al_all = P.to_support(sk, skn, support)
     rings_skin, fibres = [], []
@@ -554,9 +638,16 @@ def _place_sphincter(P: _Placer, spec: MuscleSpec, support: list[int], tscale: f
     for r in range(3):
         sl = slice(r * n, (r + 1) * n)
         rings_skin.append(sk[sl])
-        fibres.append(ActionLine(al_all.positions[sl], al_all.normals[sl], al_all.surface[sl],
-                                 al_all.tri[sl], al_all.bary[sl]))
-    bottom = np.concatenate([f.positions for f in fibres])     # (3 n, 3): ring i is row i
+        fibres.append(
+            ActionLine(
+                al_all.positions[sl],
+                al_all.normals[sl],
+                al_all.surface[sl],
+                al_all.tri[sl],
+                al_all.bary[sl],
+            )
+        )
+    bottom = np.concatenate([f.positions for f in fibres])  # (3 n, 3): ring i is row i
     normals = np.concatenate([f.normals for f in fibres])
     # contraction plane (least squares through all samples) and the ellipse (sec. 4.3.2)
     mean = bottom.mean(axis=0)
@@ -565,7 +656,7 @@ def _place_sphincter(P: _Placer, spec: MuscleSpec, support: list[int], tscale: f
     proj = lambda x: x - np.outer((x - mean) @ ncp, ncp)  # noqa: E731
     inner_p = proj(fibres[0].positions)
     outer_p = proj(fibres[2].positions)
-    o_guess = inner_p.mean(axis=0)                            # eq. 4.12
+    o_guess = inner_p.mean(axis=0)  # eq. 4.12
     # lines through opposite inner/outer sample pairs; points closest to o_guess, averaged
     cs = []
     for i in range(n):
@@ -587,10 +678,19 @@ def _place_sphincter(P: _Placer, spec: MuscleSpec, support: list[int], tscale: f
     a_len = np.max(np.abs(rel @ da))
     b_len = np.max(np.abs(rel @ db))
     thickness = spec.thickness * fr.mean_scale * tscale
-    pm = PlacedMuscle(spec=spec, origin=fibres[2].positions, insertion=fibres[0].positions,
-                      origin_skin=rings_skin[2], insertion_skin=rings_skin[0],
-                      thickness=thickness, fibres=fibres, centre=o,
-                      semi_axes=np.array([a_len, b_len]), axes=np.stack([da, db]), normal=ncp)
+    pm = PlacedMuscle(
+        spec=spec,
+        origin=fibres[2].positions,
+        insertion=fibres[0].positions,
+        origin_skin=rings_skin[2],
+        insertion_skin=rings_skin[0],
+        thickness=thickness,
+        fibres=fibres,
+        centre=o,
+        semi_axes=np.array([a_len, b_len]),
+        axes=np.stack([da, db]),
+        normal=ncp,
+    )
     _build_mesh(pm, grid_topology(n, 3, True), bottom, normals, fr)
     return pm
 
@@ -600,14 +700,20 @@ def _place_eyelid(P: _Placer, spec: MuscleSpec) -> PlacedMuscle:
     side = "left" if spec.side == "left" else "right"
     inner = fr.points[f"Inner {side} eye corner"]
     outer = fr.points[f"Outer {side} eye corner"]
-    axis = (outer - inner) if side == "left" else (inner - outer)   # points to +x on both
+    axis = (outer - inner) if side == "left" else (inner - outer)  # points to +x on both
     axis = axis / np.linalg.norm(axis)
     # the lids slide over the eyeball: the axis through the corners, moved back by the
     # eyeball radius (12 reference mm)
     pivot = 0.5 * (inner + outer) - fr.axes[2] * 12.0 * fr.scale[2]
-    pm = PlacedMuscle(spec=spec, origin=np.stack([inner]), insertion=np.stack([outer]),
-                      origin_skin=np.stack([inner]), insertion_skin=np.stack([outer]),
-                      centre=pivot, axes=np.stack([axis, fr.axes[1]]))
+    pm = PlacedMuscle(
+        spec=spec,
+        origin=np.stack([inner]),
+        insertion=np.stack([outer]),
+        origin_skin=np.stack([inner]),
+        insertion_skin=np.stack([outer]),
+        centre=pivot,
+        axes=np.stack([axis, fr.axes[1]]),
+    )
     return pm
 
 
@@ -656,6 +762,8 @@ def placement_registry(skull: Skull, placed: list[PlacedMuscle]) -> SurfaceRegis
     for pm in sorted([p for p in placed if p.surface_id >= 0], key=lambda p: p.surface_id):
         k = reg.add(pm.spec.name, pm.mesh)
         if k != pm.surface_id:
-            raise RigError("placed muscles are inconsistent with their surface ids; place them "
-                           "again with place_muscles.")
+            raise RigError(
+                "placed muscles are inconsistent with their surface ids; place them "
+                "again with place_muscles."
+            )
     return reg

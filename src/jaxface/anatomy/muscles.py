@@ -55,9 +55,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import pbd
+from .._arrays import to_jax
 from .muscle_map import PlacedMuscle, check_sphincter_rings
 from .solver import fused_group, iterate, sweep
-from .._arrays import to_jax
 
 __all__ = [
     "STIFFNESS",
@@ -74,10 +74,30 @@ __all__ = [
 
 #: Thesis stiffness values per muscle kind (sec. 4.3.1-4.3.2); 0 disables a constraint kind.
 STIFFNESS = {
-    "sheet": dict(lat_up=1.0, lon_up=0.1, lat_low=0.0, lon_low=0.0, connection=1.0,
-                  shear_up=0.0, shear_low=0.0, bend=0.4, volume=1.0, position=0.2),
-    "sphincter": dict(lat_up=0.2, lon_up=0.0, lat_low=0.0, lon_low=0.0, connection=1.0,
-                      shear_up=0.3, shear_low=0.3, bend=1.0, volume=1.0, position=0.2),
+    "sheet": dict(
+        lat_up=1.0,
+        lon_up=0.1,
+        lat_low=0.0,
+        lon_low=0.0,
+        connection=1.0,
+        shear_up=0.0,
+        shear_low=0.0,
+        bend=0.4,
+        volume=1.0,
+        position=0.2,
+    ),
+    "sphincter": dict(
+        lat_up=0.2,
+        lon_up=0.0,
+        lat_low=0.0,
+        lon_low=0.0,
+        connection=1.0,
+        shear_up=0.3,
+        shear_low=0.3,
+        bend=1.0,
+        volume=1.0,
+        position=0.2,
+    ),
 }
 STIFFNESS["linear"] = STIFFNESS["sheet"]
 POSITION_STIFFNESS = 0.2  # the same for every kind
@@ -124,7 +144,9 @@ STIFFNESS["passive"] = STIFFNESS["sheet"]
 SHELL_STIFFNESS = 1.0
 #: Range of the fibre thickening factor (rest over contracted fibre length) the shell applies.
 THICKENING_RANGE = (0.5, 3.0)
-DISTANCE_GROUP = "muscle distances"  # name of the fused distance group (first of MuscleSystem.groups)
+DISTANCE_GROUP = (
+    "muscle distances"  # name of the fused distance group (first of MuscleSystem.groups)
+)
 
 
 @dataclass
@@ -142,8 +164,9 @@ class SupportPoints:
     skull_on_mandible: list
     muscle_offset: dict  # surface id -> first particle index of that muscle
 
-    def add(self, surface: np.ndarray, tri: np.ndarray, bary: np.ndarray, positions: np.ndarray,
-            meshes) -> tuple[np.ndarray, np.ndarray]:
+    def add(
+        self, surface: np.ndarray, tri: np.ndarray, bary: np.ndarray, positions: np.ndarray, meshes
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Register ``K`` surface points; returns ``(ids (K, 3) into G-without-offset, w (K, 3))``.
 
         Skull ids are returned as negative numbers ``-(row + 1)`` and resolved by
@@ -284,7 +307,7 @@ class MuscleSystem(eqx.Module):
     def muscle_vertices(self, x, name: str):
         """``(2 w h, 3)`` particles of one muscle from the stacked ``x``."""
         i = self.names.index(name)
-        return x[self.offsets[i]:self.offsets[i + 1]]
+        return x[self.offsets[i] : self.offsets[i + 1]]
 
 
 def _eval_support(G, ids, w):
@@ -307,8 +330,14 @@ def multi_volume_project(x, tri, owner, rest, k, particle_owner, particles, n_ow
     a, b, c = x[tri[:, 0]], x[tri[:, 1]], x[tri[:, 2]]
     vol = jax.ops.segment_sum(jnp.sum(jnp.cross(a, b) * c, axis=1), owner, n_owner) / 6.0
     n = x.shape[0]
-    G = jax.ops.segment_sum(jnp.concatenate([jnp.cross(b, c), jnp.cross(c, a), jnp.cross(a, b)]),
-                            tri.T.reshape(-1), n) / 6.0   # one scatter over the three corners
+    G = (
+        jax.ops.segment_sum(
+            jnp.concatenate([jnp.cross(b, c), jnp.cross(c, a), jnp.cross(a, b)]),
+            tri.T.reshape(-1),
+            n,
+        )
+        / 6.0
+    )  # one scatter over the three corners
     w = inv_mass.astype(dt)
     Gp = G[particles]
     denom = jax.ops.segment_sum(w[particles] * jnp.sum(Gp * Gp, axis=1), particle_owner, n_owner)
@@ -322,8 +351,12 @@ def muscle_volumes(system: MuscleSystem, x) -> jax.Array:
     """``(n_muscles,)`` enclosed volume of each muscle mesh at ``x`` ``(Nm, 3)``, mm^3."""
     tri = system.vol_tri
     a, b, c = x[tri[:, 0]], x[tri[:, 1]], x[tri[:, 2]]
-    return jax.ops.segment_sum(jnp.sum(jnp.cross(a, b) * c, axis=1), system.vol_owner,
-                               system.n_muscles) / 6.0
+    return (
+        jax.ops.segment_sum(
+            jnp.sum(jnp.cross(a, b) * c, axis=1), system.vol_owner, system.n_muscles
+        )
+        / 6.0
+    )
 
 
 @dataclass
@@ -342,19 +375,35 @@ class PendingMuscles:
         d["fib_ids"] = res(d["fib_ids"])
         d["sph_ids"] = res(d["sph_ids"]) if d["sph_ids"].size else d["sph_ids"]
         skull = np.stack(self.sp.skull_rest) if self.sp.skull_rest else np.zeros((0, 3))
-        static = {k: d.pop(k) for k in ("offsets", "names", "layers", "h_max", "iterations", "shell_stiffness")}
+        static = {
+            k: d.pop(k)
+            for k in ("offsets", "names", "layers", "h_max", "iterations", "shell_stiffness")
+        }
         groups = d.pop("groups")
         arrs = {k: to_jax(v) for k, v in d.items()}
         onm = np.array(self.sp.skull_on_mandible, bool)
-        jw = onm.astype(np.float64) if jaw_weight is None else np.asarray(jaw_weight(skull, onm), np.float64)
-        return MuscleSystem(skull_rest=to_jax(skull),
-                            skull_on_mandible=to_jax(onm), skull_jaw_weight=to_jax(jw),
-                            groups=groups, **arrs, **static)
+        jw = (
+            onm.astype(np.float64)
+            if jaw_weight is None
+            else np.asarray(jaw_weight(skull, onm), np.float64)
+        )
+        return MuscleSystem(
+            skull_rest=to_jax(skull),
+            skull_on_mandible=to_jax(onm),
+            skull_jaw_weight=to_jax(jw),
+            groups=groups,
+            **arrs,
+            **static,
+        )
 
 
-def build_muscle_system(placed: list[PlacedMuscle], registry, control_index: dict,
-                        iterations: int = 24, shell_stiffness: float = SHELL_STIFFNESS
-                        ) -> tuple[PendingMuscles, SupportPoints]:
+def build_muscle_system(
+    placed: list[PlacedMuscle],
+    registry,
+    control_index: dict,
+    iterations: int = 24,
+    shell_stiffness: float = SHELL_STIFFNESS,
+) -> tuple[PendingMuscles, SupportPoints]:
     """Assemble the muscle particle system (NumPy build time).
 
     Args:
@@ -382,7 +431,7 @@ def build_muscle_system(placed: list[PlacedMuscle], registry, control_index: dic
     sp = SupportPoints([], [], muscle_offset)
     dist, bend, vol = [], [], []
     dist_key = []
-    fib = []   # (ids (m,3), w (m,3), ctrl, cmax, h, bottom (h,))
+    fib = []  # (ids (m,3), w (m,3), ctrl, cmax, h, bottom (h,))
     mod_fib = {0: [], 1: []}  # side -> (fibre index, weight, insertion-end bottom particle)
     sph = []
     for mi, p in enumerate(with_mesh):
@@ -391,10 +440,15 @@ def build_muscle_system(placed: list[PlacedMuscle], registry, control_index: dic
         kk = STIFFNESS[p.kind]
         ctrl = control_index.get(p.name, -1) if p.spec.active else -1
         cmax = p.spec.max_contraction
-        for key, arr in (("lat_up", g.latitudinal_up), ("lon_up", g.longitudinal_up),
-                         ("lat_low", g.latitudinal_low), ("lon_low", g.longitudinal_low),
-                         ("connection", g.connection), ("shear_up", g.shear_up),
-                         ("shear_low", g.shear_low)):
+        for key, arr in (
+            ("lat_up", g.latitudinal_up),
+            ("lon_up", g.longitudinal_up),
+            ("lat_low", g.latitudinal_low),
+            ("lon_low", g.longitudinal_low),
+            ("connection", g.connection),
+            ("shear_up", g.shear_up),
+            ("shear_low", g.shear_low),
+        ):
             if kk[key] > 0 and len(arr):
                 dist.append((arr + off, kk[key]))
                 dist_key.append((key, g.w * g.h))
@@ -404,17 +458,26 @@ def build_muscle_system(placed: list[PlacedMuscle], registry, control_index: dic
         vol.append((g.triangles + off, kk["volume"], np.arange(off, offsets[mi + 1])))
         if p.kind == "sphincter":
             rings = [sp.add(f.surface, f.tri, f.bary, f.positions, meshes) for f in p.fibres]
-            sph.append(dict(ids=np.stack([r[0] for r in rings]), w=np.stack([r[1] for r in rings]),
-                            bottom=off + np.arange(3 * g.w).reshape(3, g.w), ctrl=ctrl, cmax=cmax,
-                            axes=p.axes, ab=p.semi_axes,
-                            skin=np.stack([p.insertion_skin, p.origin_skin])))
+            sph.append(
+                dict(
+                    ids=np.stack([r[0] for r in rings]),
+                    w=np.stack([r[1] for r in rings]),
+                    bottom=off + np.arange(3 * g.w).reshape(3, g.w),
+                    ctrl=ctrl,
+                    cmax=cmax,
+                    axes=p.axes,
+                    ab=p.semi_axes,
+                    skin=np.stack([p.insertion_skin, p.origin_skin]),
+                )
+            )
         else:
             corner = _is_corner_muscle(p)
             for j, f in enumerate(p.fibres):
                 ids, w = sp.add(f.surface, f.tri, f.bary, f.positions, meshes)
                 if corner:
                     mod_fib[0 if p.spec.side == "left" else 1].append(
-                        (len(fib), 1.0 / len(p.fibres), off + (g.h - 1) * g.w + j))
+                        (len(fib), 1.0 / len(p.fibres), off + (g.h - 1) * g.w + j)
+                    )
                 fib.append((ids, w, ctrl, cmax, g.h, off + np.arange(g.h) * g.w + j))
     h_max = max([f[4] for f in fib], default=2)
     m_max = max([f[0].shape[0] for f in fib], default=2)
@@ -427,13 +490,19 @@ def build_muscle_system(placed: list[PlacedMuscle], registry, control_index: dic
         m = f[0].shape[0]
         fib_ids[i, :m] = f[0]
         fib_w[i, :m] = f[1]
-        fib_ids[i, m:] = f[0][-1]   # pad with the last point (zero-length segments)
+        fib_ids[i, m:] = f[0][-1]  # pad with the last point (zero-length segments)
         fib_w[i, m:] = f[1][-1]
-    valid = np.concatenate([i * h_max + np.arange(f[4]) for i, f in enumerate(fib)]) if fib else np.zeros(0, np.int64)
+    valid = (
+        np.concatenate([i * h_max + np.arange(f[4]) for i, f in enumerate(fib)])
+        if fib
+        else np.zeros(0, np.int64)
+    )
     fib_len0 = np.zeros(F)
     for i, f in enumerate(fib):
         ids_, w_ = f[0], f[1]
-        corner = np.stack([[sp.skull_rest[-k - 1] if k < 0 else rest[k] for k in row] for row in ids_])
+        corner = np.stack(
+            [[sp.skull_rest[-k - 1] if k < 0 else rest[k] for k in row] for row in ids_]
+        )
         sp_pts = np.einsum("mk,mkd->md", w_, corner)
         fib_len0[i] = np.linalg.norm(np.diff(sp_pts, axis=0), axis=1).sum()
     bottom = np.concatenate([f[5] for f in fib]) if fib else np.zeros(0, np.int64)
@@ -443,13 +512,22 @@ def build_muscle_system(placed: list[PlacedMuscle], registry, control_index: dic
     if dist:
         pairs = np.concatenate([a for a, _ in dist])
         ks = np.concatenate([np.full(len(a), k) for a, k in dist])
-        groups.append(fused_group(pbd.distance_constraints(pairs, rest, stiffness=ks), n,
-                                  omega=1.5, name=DISTANCE_GROUP))
+        groups.append(
+            fused_group(
+                pbd.distance_constraints(pairs, rest, stiffness=ks),
+                n,
+                omega=1.5,
+                name=DISTANCE_GROUP,
+            )
+        )
     if bend:
         ep = np.concatenate([a for a, _ in bend])
         ks = np.concatenate([np.full(len(a), k) for a, k in bend])
-        groups.append(fused_group(pbd.bending_constraints(ep, rest, stiffness=ks), n,
-                                  omega=1.0, name="muscle bending"))
+        groups.append(
+            fused_group(
+                pbd.bending_constraints(ep, rest, stiffness=ks), n, omega=1.0, name="muscle bending"
+            )
+        )
     shell = _shell_data(with_mesh, offsets, rest, fib, dist, dist_key)
     tri = np.concatenate([t for t, _, _ in vol])
     owner = np.concatenate([np.full(len(t), i) for i, (t, _, _) in enumerate(vol)])
@@ -457,9 +535,13 @@ def build_muscle_system(placed: list[PlacedMuscle], registry, control_index: dic
     vrest = np.bincount(owner, np.einsum("ij,ij->i", np.cross(a, b), c), minlength=len(vol)) / 6.0
     data = dict(
         rest=rest,
-        fib_ids=fib_ids, fib_w=fib_w,
-        fib_ctrl=np.array([f[2] for f in fib], np.int32), fib_cmax=np.array([f[3] for f in fib], float),
-        fib_h=np.array([f[4] for f in fib], float), fib_valid=valid, fib_bottom=bottom,
+        fib_ids=fib_ids,
+        fib_w=fib_w,
+        fib_ctrl=np.array([f[2] for f in fib], np.int32),
+        fib_cmax=np.array([f[3] for f in fib], float),
+        fib_h=np.array([f[4] for f in fib], float),
+        fib_valid=valid,
+        fib_bottom=bottom,
         fib_len0=fib_len0,
         sph_ids=np.stack([s["ids"] for s in sph]) if sph else np.zeros((0, 3, 2, 3), np.int64),
         sph_w=np.stack([s["w"] for s in sph]) if sph else np.zeros((0, 3, 2, 3)),
@@ -470,19 +552,35 @@ def build_muscle_system(placed: list[PlacedMuscle], registry, control_index: dic
         sph_ab=np.stack([s["ab"] for s in sph]) if sph else np.zeros((0, 2)),
         **mod,
         groups=tuple(groups),
-        vol_tri=tri, vol_owner=owner, vol_rest=vrest,
+        vol_tri=tri,
+        vol_owner=owner,
+        vol_rest=vrest,
         vol_k=np.array([k for _, k, _ in vol], float),
-        vol_particle_owner=np.concatenate([np.full(len(pp), i) for i, (_, _, pp) in enumerate(vol)]),
+        vol_particle_owner=np.concatenate(
+            [np.full(len(pp), i) for i, (_, _, pp) in enumerate(vol)]
+        ),
         vol_particles=np.concatenate([pp for _, _, pp in vol]),
         pos_inv_count=np.where(pos_cnt > 0, 1.0 / np.maximum(pos_cnt, 1), 0.0),
         inv_mass=np.ones(n),
-        particle_layer=np.concatenate([np.full(offsets[i + 1] - offsets[i], p.spec.layer)
-                                       for i, p in enumerate(with_mesh)]) if with_mesh else np.zeros(0, np.int64),
-        below=np.concatenate([offsets[i] + np.tile(np.arange((offsets[i + 1] - offsets[i]) // 2), 2)
-                              for i in range(len(with_mesh))]) if with_mesh else np.zeros(0, np.int64),
+        particle_layer=np.concatenate(
+            [np.full(offsets[i + 1] - offsets[i], p.spec.layer) for i, p in enumerate(with_mesh)]
+        )
+        if with_mesh
+        else np.zeros(0, np.int64),
+        below=np.concatenate(
+            [
+                offsets[i] + np.tile(np.arange((offsets[i + 1] - offsets[i]) // 2), 2)
+                for i in range(len(with_mesh))
+            ]
+        )
+        if with_mesh
+        else np.zeros(0, np.int64),
         **shell,
-        offsets=tuple(offsets), names=tuple(p.name for p in with_mesh),
-        layers=tuple(p.spec.layer for p in with_mesh), h_max=int(h_max), iterations=int(iterations),
+        offsets=tuple(offsets),
+        names=tuple(p.name for p in with_mesh),
+        layers=tuple(p.spec.layer for p in with_mesh),
+        h_max=int(h_max),
+        iterations=int(iterations),
         shell_stiffness=float(shell_stiffness),
     )
     return PendingMuscles(data, sp), sp
@@ -537,7 +635,7 @@ def _shell_data(with_mesh, offsets, rest, fib, dist, dist_key) -> dict:
     distance group, the fibre sample whose contraction shortens a top-sheet edge along the
     fibre (``dist_lon_sample``) or thickens a connection (``dist_conn_sample``), -1 otherwise.
     """
-    sample_of = {}   # bottom particle -> its row in the (P,) valid fibre samples
+    sample_of = {}  # bottom particle -> its row in the (P,) valid fibre samples
     for f in fib:
         for b in f[5]:
             sample_of[int(b)] = len(sample_of)
@@ -550,9 +648,19 @@ def _shell_data(with_mesh, offsets, rest, fib, dist, dist_key) -> dict:
             for j in range(w):
                 bots.append(off + i * w + j)
                 tops.append(off + w * h + i * w + j)
-                jp, jm = ((j + 1) % w, (j - 1) % w) if p.grid.periodic else (min(j + 1, w - 1), max(j - 1, 0))
-                along.append((off + min(i + 1, h - 1) * w + j, off + max(i - 1, 0) * w + j,
-                              off + i * w + jp, off + i * w + jm))
+                jp, jm = (
+                    ((j + 1) % w, (j - 1) % w)
+                    if p.grid.periodic
+                    else (min(j + 1, w - 1), max(j - 1, 0))
+                )
+                along.append(
+                    (
+                        off + min(i + 1, h - 1) * w + j,
+                        off + max(i - 1, 0) * w + j,
+                        off + i * w + jp,
+                        off + i * w + jm,
+                    )
+                )
     top = np.asarray(tops, np.int64)
     bot = np.asarray(bots, np.int64)
     al = np.asarray(along, np.int64).reshape(-1, 4)
@@ -563,23 +671,35 @@ def _shell_data(with_mesh, offsets, rest, fib, dist, dist_key) -> dict:
     F0 = _shell_frames(rest, bot, al, tri)
     tu = rest[al[:, 0]] - rest[al[:, 1]]
     tu_n = np.einsum("kd,kd->k", tu, F0[:, 2])
-    mode = np.where(tu_n ** 2 >= 0.91 * np.einsum("kd,kd->k", tu, tu), 1, 0)
+    mode = np.where(tu_n**2 >= 0.91 * np.einsum("kd,kd->k", tu, tu), 1, 0)
     det = np.linalg.det(_shell_frames(rest, bot, al, tri, mode))
     mode = np.where(np.abs(det) < 0.5, 2, mode)
     local = np.einsum("kij,kj->ki", _shell_frames(rest, bot, al, tri, mode), rest[top] - rest[bot])
     lon, conn = [], []
     for (pairs, _), (key, nwh) in zip(dist, dist_key):
         none = np.full(len(pairs), -1)
-        lon.append(np.array([sample_of.get(int(e[0]) - nwh, -1) for e in pairs]) if key == "lon_up" else none)
-        conn.append(np.array([sample_of.get(int(e[0]), -1) for e in pairs]) if key == "connection" else none)
+        lon.append(
+            np.array([sample_of.get(int(e[0]) - nwh, -1) for e in pairs])
+            if key == "lon_up"
+            else none
+        )
+        conn.append(
+            np.array([sample_of.get(int(e[0]), -1) for e in pairs]) if key == "connection" else none
+        )
     cat = lambda v: np.concatenate(v).astype(np.int64) if v else np.zeros(0, np.int64)  # noqa: E731
-    return dict(shell_top=top, shell_along=al, shell_tri=tri, shell_local=local,
-                shell_mode=mode.astype(np.int32),
-                shell_sample=np.asarray([sample_of.get(int(b_), -1) for b_ in bot], np.int64),
-                dist_lon_sample=cat(lon), dist_conn_sample=cat(conn))
+    return dict(
+        shell_top=top,
+        shell_along=al,
+        shell_tri=tri,
+        shell_local=local,
+        shell_mode=mode.astype(np.int32),
+        shell_sample=np.asarray([sample_of.get(int(b_), -1) for b_ in bot], np.int64),
+        dist_lon_sample=cat(lon),
+        dist_conn_sample=cat(conn),
+    )
 
 
-def shell_targets(system: "MuscleSystem", x, ids, tg, thick):
+def shell_targets(system: MuscleSystem, x, ids, tg, thick):
     """Where the shell constraint puts every top particle, ``(K, 3)`` mm (``K`` = all tops).
 
     The *shell* is our addition to the thesis's muscle (sec. 4.3.1 holds the top sheet only
@@ -617,7 +737,7 @@ def _padded_thickening(thick, dt):
     return jnp.concatenate([jnp.clip(thick.astype(dt), lo, hi), jnp.ones((1,), dt)])
 
 
-def _active_groups(system: "MuscleSystem", activations, thick, dt):
+def _active_groups(system: MuscleSystem, activations, thick, dt):
     """The fused groups with the distance rest lengths of the contracted muscle: top-sheet
     edges along a fibre shortened by ``1 - c`` (the fibre contracts, eq. 4.11, in both
     sheets) and boundary connections lengthened by the fibre's thickening."""
@@ -628,8 +748,11 @@ def _active_groups(system: "MuscleSystem", activations, thick, dt):
     c_f = acts[system.fib_ctrl] * system.fib_cmax.astype(dt)
     c_s = jnp.concatenate([jnp.repeat(c_f, system.h_max)[system.fib_valid], jnp.zeros((1,), dt)])
     g0 = groups[0]
-    r = (g0.c.rest.astype(dt) * (1.0 - c_s[system.dist_lon_sample])
-         * _padded_thickening(thick, dt)[system.dist_conn_sample])
+    r = (
+        g0.c.rest.astype(dt)
+        * (1.0 - c_s[system.dist_lon_sample])
+        * _padded_thickening(thick, dt)[system.dist_conn_sample]
+    )
     return (eqx.tree_at(lambda q: q.c.rest, g0, r),) + tuple(groups[1:])
 
 
@@ -638,9 +761,13 @@ def _is_corner_muscle(p) -> bool:
     ins = p.spec.insertion if isinstance(p.spec.insertion, dict) else {}
     at = ins.get("at", {})
     off = np.asarray(ins.get("offset", [0.0, 0.0, 0.0]), float)
-    return (p.kind in ("linear", "sheet") and p.spec.active and p.spec.side in ("left", "right")
-            and any("mouth corner" in str(k).lower() for k in at)
-            and float(np.linalg.norm(off)) <= MODIOLUS_MAX_OFFSET_MM)
+    return (
+        p.kind in ("linear", "sheet")
+        and p.spec.active
+        and p.spec.side in ("left", "right")
+        and any("mouth corner" in str(k).lower() for k in at)
+        and float(np.linalg.norm(off)) <= MODIOLUS_MAX_OFFSET_MM
+    )
 
 
 def _modiolus(mod_fib, fib, sph, rest, h_max: int) -> dict:
@@ -671,14 +798,14 @@ def _modiolus(mod_fib, fib, sph, rest, h_max: int) -> dict:
     n = sph[0]["ids"].shape[1] if sph else 2
     mod_w = np.zeros((len(sph), 3, n, 2))
     for k, s in enumerate(sph):
-        pos = rest[s["bottom"]]                                                       # (3, n, 3)
-        mid_skin = 0.5 * (s["skin"][0] + s["skin"][1])                                # (n, 3)
+        pos = rest[s["bottom"]]  # (3, n, 3)
+        mid_skin = 0.5 * (s["skin"][0] + s["skin"][1])  # (n, 3)
         g = np.zeros((3, n, 2))
         for i in (0, 1):
             if not ok[i] or np.linalg.norm(pos - ends[i], axis=-1).min() > 2.0 * MODIOLUS_SIGMA_MM:
                 continue
-            corner = _ring_end(mid_skin, 0.0 if i == 0 else 0.5 * n)             # left, right
-            d = np.linalg.norm(pos - corner, axis=-1)                                 # (3, n)
+            corner = _ring_end(mid_skin, 0.0 if i == 0 else 0.5 * n)  # left, right
+            d = np.linalg.norm(pos - corner, axis=-1)  # (3, n)
             g[..., i] = np.exp(-0.5 * (d / MODIOLUS_SIGMA_MM) ** 2)
         # each sample follows its nearer modiolus, the two blended across the mid-line
         mod_w[k] = g * (g / np.maximum(g.sum(axis=-1, keepdims=True), 1e-300))
@@ -696,8 +823,14 @@ def _ring_end(ring, u: float):
     f = u - k
     if f == 0.0:
         return ring[k % n]
-    w = np.array([-f * (f - 1) * (f - 2) / 6, (f + 1) * (f - 1) * (f - 2) / 2,
-                  -(f + 1) * f * (f - 2) / 2, (f + 1) * f * (f - 1) / 6])
+    w = np.array(
+        [
+            -f * (f - 1) * (f - 2) / 6,
+            (f + 1) * (f - 1) * (f - 2) / 2,
+            -(f + 1) * f * (f - 2) / 2,
+            (f + 1) * f * (f - 1) / 6,
+        ]
+    )
     return w @ ring[[(k - 1) % n, k % n, (k + 1) % n, (k + 2) % n]]
 
 
@@ -718,30 +851,32 @@ def sample_targets(system: MuscleSystem, G, activations):
     """
     dt = G.dtype
     acts = jnp.concatenate([jnp.asarray(activations, dt), jnp.zeros((1,), dt)])
-    pts = _eval_support(G, system.fib_ids, system.fib_w)              # (F, m, 3)
-    c = acts[system.fib_ctrl] * system.fib_cmax.astype(dt)           # ctrl -1 -> 0
-    s = _sample_var(pts, system.fib_h.astype(dt), system.h_max, c)   # (F, H, 3)
+    pts = _eval_support(G, system.fib_ids, system.fib_w)  # (F, m, 3)
+    c = acts[system.fib_ctrl] * system.fib_cmax.astype(dt)  # ctrl -1 -> 0
+    s = _sample_var(pts, system.fib_h.astype(dt), system.h_max, c)  # (F, H, 3)
     tg_f = s.reshape(-1, 3)[system.fib_valid]
     if system.sph_ids.shape[0] == 0:
         return system.fib_bottom, tg_f
-    P = _eval_support(G, system.sph_ids, system.sph_w)                # (K, 3, n, 3)
+    P = _eval_support(G, system.sph_ids, system.sph_w)  # (K, 3, n, 3)
     # modiolus: contraction displacement of the corner muscles' insertion ends, per side
-    pull = s.reshape(-1, 3)[system.mod_end] - pts[system.mod_last, -1]   # (2, J, 3)
-    D = jnp.einsum("sj,sjd->sd", system.mod_fw.astype(dt), pull)         # (2, 3)
+    pull = s.reshape(-1, 3)[system.mod_end] - pts[system.mod_last, -1]  # (2, J, 3)
+    D = jnp.einsum("sj,sjd->sd", system.mod_fw.astype(dt), pull)  # (2, 3)
     P = P + MODIOLUS_GAIN * jnp.einsum("kmns,sd->kmnd", system.mod_w.astype(dt), D)
     inner, outer = P[:, 0], P[:, 2]
-    o = jnp.mean(inner, axis=1, keepdims=True)                        # (K, 1, 3)
+    o = jnp.mean(inner, axis=1, keepdims=True)  # (K, 1, 3)
     ax = system.sph_axes.astype(dt)
     xx = jnp.einsum("knd,kd->kn", outer - o, ax[:, 0])
     yy = jnp.einsum("knd,kd->kn", outer - o, ax[:, 1])
     ab = system.sph_ab.astype(dt)
     r2 = (xx / ab[:, :1]) ** 2 + (yy / ab[:, 1:]) ** 2
     r = jnp.minimum(jnp.sqrt(jnp.maximum(r2, 1e-12)), 1.0)
-    cs = acts[system.sph_ctrl] * system.sph_cmax.astype(dt)          # (K,)
+    cs = acts[system.sph_ctrl] * system.sph_cmax.astype(dt)  # (K,)
     delta = cs[:, None, None] * (o - inner) * jnp.cos(0.5 * jnp.pi * (1.0 - r))[..., None]
     tg_s = (P + delta[:, None]).reshape(-1, 3)
-    return (jnp.concatenate([system.fib_bottom, system.sph_bottom.reshape(-1)]),
-            jnp.concatenate([tg_f, tg_s]))
+    return (
+        jnp.concatenate([system.fib_bottom, system.sph_bottom.reshape(-1)]),
+        jnp.concatenate([tg_f, tg_s]),
+    )
 
 
 def fibre_thickening(system: MuscleSystem, G, activations):
@@ -803,9 +938,17 @@ def muscle_sweep(system: MuscleSystem, x, skull, activations, inv_mass):
         x = x.at[top].add(jnp.where((inv_mass[top] > 0)[:, None], dp, 0.0))
         groups = _active_groups(system, activations, thick, x.dtype)
     x = sweep(groups, x, inv_mass)
-    return multi_volume_project(x, system.vol_tri, system.vol_owner, system.vol_rest, system.vol_k,
-                                system.vol_particle_owner, system.vol_particles, system.n_muscles,
-                                inv_mass)
+    return multi_volume_project(
+        x,
+        system.vol_tri,
+        system.vol_owner,
+        system.vol_rest,
+        system.vol_k,
+        system.vol_particle_owner,
+        system.vol_particles,
+        system.n_muscles,
+        inv_mass,
+    )
 
 
 def warm_start(system: MuscleSystem, skull, activations):
@@ -816,7 +959,7 @@ def warm_start(system: MuscleSystem, skull, activations):
     sec. 4.1)."""
     rest = system.rest.astype(skull.dtype)
     x = rest
-    below = system.below                      # (Nm,) the bottom particle under each particle
+    below = system.below  # (Nm,) the bottom particle under each particle
     is_top = below != jnp.arange(rest.shape[0])
     off = rest - rest[below]
     for L in sorted(set(system.layers)):
@@ -834,8 +977,9 @@ def warm_start(system: MuscleSystem, skull, activations):
     return x
 
 
-def solve_muscles(system: MuscleSystem, activations, R, t, *, iterations: int | None = None,
-                  x0=None):
+def solve_muscles(
+    system: MuscleSystem, activations, R, t, *, iterations: int | None = None, x0=None
+):
     """Quasi-static muscle solve for given activations and jaw motion.
 
     All layers are refreshed in every sweep (a layer's samples are read from the current
@@ -859,6 +1003,11 @@ def solve_muscles(system: MuscleSystem, activations, R, t, *, iterations: int | 
     x = warm_start(system, skull, activations.astype(dt)) if x0 is None else jnp.asarray(x0, dt)
     inv_mass = system.inv_mass.astype(dt)
     a = activations.astype(dt)
-    x = iterate(lambda x: muscle_sweep(system, x, skull, a, inv_mass), x, iters, system.chebyshev_rho,
-                checkpoint=system.checkpoint)
+    x = iterate(
+        lambda x: muscle_sweep(system, x, skull, a, inv_mass),
+        x,
+        iters,
+        system.chebyshev_rho,
+        checkpoint=system.checkpoint,
+    )
     return x, skull

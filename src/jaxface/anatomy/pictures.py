@@ -15,7 +15,13 @@ import numpy as np
 from .. import facs
 from .rig import Rig, synthesize
 
-__all__ = ["emotion_pictures", "expression_sheet", "muscle_map_picture", "jaw_diagram", "EMOTION_ORDER"]
+__all__ = [
+    "emotion_pictures",
+    "expression_sheet",
+    "muscle_map_picture",
+    "jaw_diagram",
+    "EMOTION_ORDER",
+]
 
 EMOTION_ORDER = ("happiness", "sadness", "surprise", "fear", "anger", "disgust")
 
@@ -31,8 +37,17 @@ def _layers(rig: Rig, x, jaw, head):
     return head_layers(head, skin=np.asarray(x), lower_teeth=lower)
 
 
-def expression_sheet(path, rig: Rig, expressions, *, views=("front", (30.0, 5.0)), px: int = 420,
-                     ncol: int | None = None, title: str | None = None, head=None) -> Path:
+def expression_sheet(
+    path,
+    rig: Rig,
+    expressions,
+    *,
+    views=("front", (30.0, 5.0)),
+    px: int = 420,
+    ncol: int | None = None,
+    title: str | None = None,
+    head=None,
+) -> Path:
     """Draw expressions side by side.
 
     Args:
@@ -65,15 +80,19 @@ def expression_sheet(path, rig: Rig, expressions, *, views=("front", (30.0, 5.0)
     if head is not None and head.mesh.n_vertices != rest.shape[0]:
         from ..errors import RigError
 
-        raise RigError(f"head has {head.mesh.n_vertices} skin vertices, the rig {rest.shape[0]}: "
-                         "pass the head the rig was built on, or head=None.")
+        raise RigError(
+            f"head has {head.mesh.n_vertices} skin vertices, the rig {rest.shape[0]}: "
+            "pass the head the rig was built on, or head=None."
+        )
     panels = []
     for name, aus in expressions:
         a, jaw, puff = facs.aus_to_controls(aus, rig.muscle_names)
         x = np.asarray(synthesize(rig, jnp.asarray(a, rig.rest.dtype), jaw, puff)) if aus else rest
         layers = _layers(rig, x, jaw, head)
         for v in views:
-            panels.append((f"{name}", rasterize(layers, view=v, width=px, height=px, bounds=bounds).image))
+            panels.append(
+                (f"{name}", rasterize(layers, view=v, width=px, height=px, bounds=bounds).image)
+            )
     ncol = ncol or len(views)
     nrow = (len(panels) + ncol - 1) // ncol
     fig, axs = plt.subplots(nrow, ncol, figsize=(3.0 * ncol, 3.1 * nrow), squeeze=False)
@@ -90,8 +109,9 @@ def expression_sheet(path, rig: Rig, expressions, *, views=("front", (30.0, 5.0)
     return save_figure(fig, path, dpi=100, close=True)
 
 
-def emotion_pictures(rig: Rig, out_dir, *, intensity: float = 1.0, px: int = 420,
-                     head=None) -> list[Path]:
+def emotion_pictures(
+    rig: Rig, out_dir, *, intensity: float = 1.0, px: int = 420, head=None
+) -> list[Path]:
     """Write the six emotions (:data:`jaxface.facs.EMOTIONS`) as PNGs into ``out_dir``.
 
     Files: ``emotion_<name>.png`` (neutral and the emotion, front and three-quarter views) and
@@ -104,12 +124,28 @@ def emotion_pictures(rig: Rig, out_dir, *, intensity: float = 1.0, px: int = 420
     paths = []
     for name in EMOTION_ORDER:
         aus = {k: v * intensity for k, v in facs.EMOTIONS[name].items()}
-        paths.append(expression_sheet(out / f"emotion_{name}.png", rig,
-                                      [("neutral", {}), (name, aus)], px=px, ncol=2,
-                                      views=("front", (35.0, 5.0)), head=head))
-    paths.append(expression_sheet(out / "emotions.png", rig,
-                                  [("neutral", {})] + [(n, facs.EMOTIONS[n]) for n in EMOTION_ORDER],
-                                  views=("front",), ncol=4, px=px, head=head))
+        paths.append(
+            expression_sheet(
+                out / f"emotion_{name}.png",
+                rig,
+                [("neutral", {}), (name, aus)],
+                px=px,
+                ncol=2,
+                views=("front", (35.0, 5.0)),
+                head=head,
+            )
+        )
+    paths.append(
+        expression_sheet(
+            out / "emotions.png",
+            rig,
+            [("neutral", {})] + [(n, facs.EMOTIONS[n]) for n in EMOTION_ORDER],
+            views=("front",),
+            ncol=4,
+            px=px,
+            head=head,
+        )
+    )
     return paths
 
 
@@ -149,10 +185,22 @@ def muscle_map_picture(path, rig: Rig, *, px: int = 460) -> Path:
     info = rig.info
     skull = info.skull
     colors = _muscle_colors(info.placed)
-    bone = [Layer(np.asarray(skull.cranium.vertices), np.asarray(skull.cranium.triangles), color=BONE),
-            Layer(np.asarray(skull.mandible.vertices), np.asarray(skull.mandible.triangles), color=BONE)]
-    muscles = [Layer(np.asarray(p.mesh.vertices), np.asarray(p.mesh.triangles), color=colors[p.spec.base],
-                     specular=0.05) for p in info.placed if p.mesh is not None]
+    bone = [
+        Layer(np.asarray(skull.cranium.vertices), np.asarray(skull.cranium.triangles), color=BONE),
+        Layer(
+            np.asarray(skull.mandible.vertices), np.asarray(skull.mandible.triangles), color=BONE
+        ),
+    ]
+    muscles = [
+        Layer(
+            np.asarray(p.mesh.vertices),
+            np.asarray(p.mesh.triangles),
+            color=colors[p.spec.base],
+            specular=0.05,
+        )
+        for p in info.placed
+        if p.mesh is not None
+    ]
     skin = np.asarray(rig.rest)
     lo, hi = skin.min(axis=0), skin.max(axis=0)
     bounds = np.stack([lo, hi])
@@ -165,11 +213,36 @@ def muscle_map_picture(path, rig: Rig, *, px: int = 460) -> Path:
         lines.append(np.linspace(a, b, 12))
         lcol.append(colors[p.spec.base])
     fig, axs = plt.subplots(1, 3, figsize=(3 * px / 100 + 2.2, px / 100 + 0.4))
-    draw(axs[0], bone + muscles, "front", width=px, height=px, bounds=bounds, title="muscles on the skull")
-    draw(axs[1], bone + muscles, (35.0, 5.0), width=px, height=px, bounds=bounds, title="three-quarter view")
-    draw(axs[2], [Layer(skin, np.asarray(rig.triangles))], "front", width=px, height=px, bounds=bounds,
-         polylines=lines, polyline_colors=lcol, polyline_width=2.0,
-         title="action lines on the face (origin -> insertion)")
+    draw(
+        axs[0],
+        bone + muscles,
+        "front",
+        width=px,
+        height=px,
+        bounds=bounds,
+        title="muscles on the skull",
+    )
+    draw(
+        axs[1],
+        bone + muscles,
+        (35.0, 5.0),
+        width=px,
+        height=px,
+        bounds=bounds,
+        title="three-quarter view",
+    )
+    draw(
+        axs[2],
+        [Layer(skin, np.asarray(rig.triangles))],
+        "front",
+        width=px,
+        height=px,
+        bounds=bounds,
+        polylines=lines,
+        polyline_colors=lcol,
+        polyline_width=2.0,
+        title="action lines on the face (origin -> insertion)",
+    )
     handles = [Patch(color=c, label=b.replace("_", " ")) for b, c in colors.items()]
     fig.legend(handles=handles, loc="center right", fontsize=7, frameon=False)
     fig.tight_layout(rect=(0, 0, 0.83, 1))
@@ -208,25 +281,41 @@ def jaw_diagram(path, rig: Rig, pose=None, *, px: int = 460) -> Path:
     mand = np.asarray(skull.mandible.vertices, float)
     moved = mand @ R.T + t
     c = np.asarray(jm.pivot, float)
-    axes = [np.stack([c - 55 * np.asarray(jm.pitch_axis), c + 55 * np.asarray(jm.pitch_axis)]),
-            np.stack([c, c + 45 * np.asarray(jm.yaw_axis)]),
-            np.stack([c, c + 40 * np.asarray(jm.protrusion_dir)])]
+    axes = [
+        np.stack([c - 55 * np.asarray(jm.pitch_axis), c + 55 * np.asarray(jm.pitch_axis)]),
+        np.stack([c, c + 45 * np.asarray(jm.yaw_axis)]),
+        np.stack([c, c + 40 * np.asarray(jm.protrusion_dir)]),
+    ]
     axes = [np.linspace(a[0], a[1], 16) for a in axes]
     cols = [(0.85, 0.1, 0.1), (0.1, 0.6, 0.1), (0.1, 0.3, 0.9)]
-    layers = [Layer(np.asarray(skull.cranium.vertices), np.asarray(skull.cranium.triangles), color=BONE),
-              Layer(moved, np.asarray(skull.mandible.triangles), color=(0.55, 0.7, 0.95))]
+    layers = [
+        Layer(np.asarray(skull.cranium.vertices), np.asarray(skull.cranium.triangles), color=BONE),
+        Layer(moved, np.asarray(skull.mandible.triangles), color=(0.55, 0.7, 0.95)),
+    ]
     allv = np.concatenate([np.asarray(skull.cranium.vertices), mand, moved])
     bounds = np.stack([allv.min(0) - 10, allv.max(0) + 10])
     pc = jm.clamp(pose)
     fig, axs = plt.subplots(1, 2, figsize=(2 * px / 100, px / 100 + 0.6))
     for ax, view in zip(axs, ("side", "front")):
-        draw(ax, layers, view, width=px, height=px, bounds=bounds, polylines=axes, polyline_colors=cols,
-             polyline_width=2.5, title=view)
+        draw(
+            ax,
+            layers,
+            view,
+            width=px,
+            height=px,
+            bounds=bounds,
+            polylines=axes,
+            polyline_colors=cols,
+            polyline_width=2.5,
+            title=view,
+        )
     fig.suptitle(
         f"jaw pose: pitch {float(pc.pitch_deg):.1f} deg (limits {jm.pitch_limits[0]:g}..{jm.pitch_limits[1]:g}), "
         f"yaw {float(pc.yaw_deg):.1f} deg ({jm.yaw_limits[0]:g}..{jm.yaw_limits[1]:g}), protrusion "
         f"{float(pc.protrusion_mm):.1f} mm ({jm.protrusion_limits[0]:g}..{jm.protrusion_limits[1]:g})\n"
-        "red: pitch axis through the condyles, green: yaw axis, blue: protrusion", fontsize=8)
+        "red: pitch axis through the condyles, green: yaw axis, blue: protrusion",
+        fontsize=8,
+    )
     fig.tight_layout()
     from ..render import save_figure
 

@@ -22,7 +22,6 @@ Units: mm, degrees (jaw angles); +y up, +z forward, subject's left +x.
 
 from __future__ import annotations
 
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -33,8 +32,23 @@ from ..mesh import TriMesh
 from .frame import face_frame
 from .jaw import JawModel, JawPose
 from .muscle_map import MuscleSpec, load_muscle_map, place_muscles, placement_registry
-from .muscles import SHELL_STIFFNESS, MuscleSystem, build_muscle_system, muscle_sweep, solve_muscles, moved_skull_points
-from .skin import SkinSystem, bind_skin, build_skin_system, eyelid_vertices, influence_map, skin_targets, solve_skin
+from .muscles import (
+    SHELL_STIFFNESS,
+    MuscleSystem,
+    build_muscle_system,
+    moved_skull_points,
+    muscle_sweep,
+    solve_muscles,
+)
+from .skin import (
+    SkinSystem,
+    bind_skin,
+    build_skin_system,
+    eyelid_vertices,
+    influence_map,
+    skin_targets,
+    solve_skin,
+)
 from .skull import Skull, estimate_skull
 
 JAW_FOLLOW_MM = (30.0, 100.0)
@@ -88,8 +102,21 @@ FOOTPRINT_CLUSTER_MM = 5.0
 #: the frontalis). 0 turns it off.
 FAT_VOLUME = (0.5, 0.0)
 
-__all__ = ["FAT_VOLUME", "FOOTPRINT_CLUSTER_MM", "FOOTPRINT_MM", "JAW_FOLLOW_MM", "Rig", "RigInfo", "SynthState", "build_rig", "equilibrium_gap", "jaw_follow_weights",
-           "synthesize", "synthesize_state", "simulate"]
+__all__ = [
+    "FAT_VOLUME",
+    "FOOTPRINT_CLUSTER_MM",
+    "FOOTPRINT_MM",
+    "JAW_FOLLOW_MM",
+    "Rig",
+    "RigInfo",
+    "SynthState",
+    "build_rig",
+    "equilibrium_gap",
+    "jaw_follow_weights",
+    "synthesize",
+    "synthesize_state",
+    "simulate",
+]
 
 
 class RigInfo:
@@ -158,7 +185,9 @@ class Rig(eqx.Module):
         try:
             return self.muscle_names.index(name)
         except ValueError:
-            raise RigError(f"unknown muscle {name!r}; the rig's controls are {list(self.muscle_names)}.") from None
+            raise RigError(
+                f"unknown muscle {name!r}; the rig's controls are {list(self.muscle_names)}."
+            ) from None
 
     def activations(self, values: dict | None = None, **kw) -> jax.Array:
         """``(M,)`` activation vector from ``{name: value}`` (others 0)."""
@@ -167,9 +196,15 @@ class Rig(eqx.Module):
             a[self.index(k)] = float(v)
         return jnp.asarray(a)
 
-    def with_iterations(self, muscles: int | None = None, skin: int | None = None, *,
-                        muscle_rho: float | None = None, skin_rho: float | None = None,
-                        checkpoint: bool | None = None) -> "Rig":
+    def with_iterations(
+        self,
+        muscles: int | None = None,
+        skin: int | None = None,
+        *,
+        muscle_rho: float | None = None,
+        skin_rho: float | None = None,
+        checkpoint: bool | None = None,
+    ) -> Rig:
         """A copy with other static sweep counts (e.g. many for a converged reference) and,
         optionally, other Chebyshev spectral-radius estimates of the two quasi-static solves
         (:func:`jaxface.anatomy.solver.iterate`; 0 = plain sweeps). ``muscle_rho`` is for
@@ -219,16 +254,33 @@ def _as_mesh(skin) -> TriMesh:
         return skin
     if hasattr(skin, "mesh") and isinstance(skin.mesh, TriMesh):
         return skin.mesh
-    raise RigError(f"build_rig needs the skin as a jaxface TriMesh (mm), got {type(skin).__name__}.")
+    raise RigError(
+        f"build_rig needs the skin as a jaxface TriMesh (mm), got {type(skin).__name__}."
+    )
 
 
-def build_rig(skin, landmarks=None, skull: Skull | None = None, muscle_map=None, backend: str = "pbd",
-              *, upper_teeth: TriMesh | None = None, lower_teeth: TriMesh | None = None,
-              muscle_iterations: int = 32, skin_iterations: int = 8, footprint_mm: float | tuple = FOOTPRINT_MM,
-              footprint_cluster_mm: float = FOOTPRINT_CLUSTER_MM, influence_radius: float = 0.15, eyelid_threshold: float = 0.04,
-              bending: bool = False, jaw_follow_mm: tuple[float, float] = JAW_FOLLOW_MM,
-              jaw_membrane: bool = False, skin_chebyshev_rho: float = 0.0,
-              muscle_shell_stiffness: float = SHELL_STIFFNESS, fat_volume: float | tuple = FAT_VOLUME):
+def build_rig(
+    skin,
+    landmarks=None,
+    skull: Skull | None = None,
+    muscle_map=None,
+    backend: str = "pbd",
+    *,
+    upper_teeth: TriMesh | None = None,
+    lower_teeth: TriMesh | None = None,
+    muscle_iterations: int = 32,
+    skin_iterations: int = 8,
+    footprint_mm: float | tuple = FOOTPRINT_MM,
+    footprint_cluster_mm: float = FOOTPRINT_CLUSTER_MM,
+    influence_radius: float = 0.15,
+    eyelid_threshold: float = 0.04,
+    bending: bool = False,
+    jaw_follow_mm: tuple[float, float] = JAW_FOLLOW_MM,
+    jaw_membrane: bool = False,
+    skin_chebyshev_rho: float = 0.0,
+    muscle_shell_stiffness: float = SHELL_STIFFNESS,
+    fat_volume: float | tuple = FAT_VOLUME,
+):
     """Build the rig of a face.
 
     Args:
@@ -324,13 +376,18 @@ def build_rig(skin, landmarks=None, skull: Skull | None = None, muscle_map=None,
     placed = place_muscles(mesh, landmarks, skull, specs)
     registry = placement_registry(skull, placed)
     if not 0.0 <= float(muscle_shell_stiffness) <= 1.0:
-        raise RigError(f"muscle_shell_stiffness must be in [0, 1], got {muscle_shell_stiffness} "
-                       "(1 = default, 0 = the thesis's muscle without the shell).")
-    pend, sp = build_muscle_system(placed, registry, ci, iterations=muscle_iterations,
-                                   shell_stiffness=muscle_shell_stiffness)
+        raise RigError(
+            f"muscle_shell_stiffness must be in [0, 1], got {muscle_shell_stiffness} "
+            "(1 = default, 0 = the thesis's muscle without the shell)."
+        )
+    pend, sp = build_muscle_system(
+        placed, registry, ci, iterations=muscle_iterations, shell_stiffness=muscle_shell_stiffness
+    )
     binding = bind_skin(mesh, registry, scale=frame.mean_scale)
     ids, w = sp.add(binding.surface, binding.tri, binding.bary, binding.point, registry.meshes)
-    muscles = pend.finalize(jaw_weight=lambda p, onm: jaw_follow_weights(p, onm, frame, *jaw_follow_mm))
+    muscles = pend.finalize(
+        jaw_weight=lambda p, onm: jaw_follow_weights(p, onm, frame, *jaw_follow_mm)
+    )
     ids = sp.resolve(ids)
     membrane = None
     if jaw_membrane:
@@ -340,7 +397,9 @@ def build_rig(skin, landmarks=None, skull: Skull | None = None, muscle_map=None,
         jw = np.asarray(muscles.skull_jaw_weight)
         wj = np.sum(w * np.where(ids < S, jw[np.minimum(ids, S - 1)], 0.0), axis=1)
         chin_y = frame.to_local(frame.points["Chin middle"])[1]
-        membrane = (binding.surface == 0) & (wj > 1e-6) & (frame.to_local(mesh.vertices)[:, 1] < chin_y)
+        membrane = (
+            (binding.surface == 0) & (wj > 1e-6) & (frame.to_local(mesh.vertices)[:, 1] < chin_y)
+        )
     sources = binding.surface != 0
     infl = influence_map(mesh, sources, influence_radius)
     # eyelids: one lid region per eye; angles per control from the map
@@ -349,29 +408,61 @@ def build_rig(skin, landmarks=None, skull: Skull | None = None, muscle_map=None,
         angles = np.zeros((len(names), 2))
         for s in controls:
             if s.kind == "eyelid" and s.side == side and s.angles_deg:
-                angles[ci[s.name]] = (float(s.angles_deg.get("upper", 0.0)),
-                                      float(s.angles_deg.get("lower", 0.0)))
+                angles[ci[s.name]] = (
+                    float(s.angles_deg.get("upper", 0.0)),
+                    float(s.angles_deg.get("lower", 0.0)),
+                )
         if not np.any(angles):
             continue
         lid_ids, fall, upper = eyelid_vertices(mesh, frame, side, eyelid_threshold)
         pm = next(p for p in placed if p.kind == "eyelid" and p.spec.side == side)
         eyelids.append((lid_ids, fall, upper, len(eyelids), pm.centre, pm.axes[0], angles))
-    skin_sys = build_skin_system(mesh, frame, binding, ids, w, influence=infl, eyelids=eyelids,
-                                 teeth=(skull.upper_teeth, skull.lower_teeth),
-                                 footprint_mm=footprint_mm, footprint_cluster_mm=footprint_cluster_mm,
-                                 bending=bending,
-                                 iterations=skin_iterations, membrane=membrane,
-                                 fat_volume=fat_volume)
+    skin_sys = build_skin_system(
+        mesh,
+        frame,
+        binding,
+        ids,
+        w,
+        influence=infl,
+        eyelids=eyelids,
+        teeth=(skull.upper_teeth, skull.lower_teeth),
+        footprint_mm=footprint_mm,
+        footprint_cluster_mm=footprint_cluster_mm,
+        bending=bending,
+        iterations=skin_iterations,
+        membrane=membrane,
+        fat_volume=fat_volume,
+    )
     jaw = JawModel.from_landmarks(frame)
-    info = RigInfo(skin=mesh, landmarks=landmarks, frame=frame, skull=skull, placed=placed,
-                   specs=specs, binding=binding, influence=infl, registry=registry)
-    rig = Rig(jaw=jaw, muscles=muscles, skin=skin_sys, muscle_names=names,
-              muscle_aus=tuple(tuple(s.aus) for s in controls), info=info)
+    info = RigInfo(
+        skin=mesh,
+        landmarks=landmarks,
+        frame=frame,
+        skull=skull,
+        placed=placed,
+        specs=specs,
+        binding=binding,
+        influence=infl,
+        registry=registry,
+    )
+    rig = Rig(
+        jaw=jaw,
+        muscles=muscles,
+        skin=skin_sys,
+        muscle_names=names,
+        muscle_aus=tuple(tuple(s.aus) for s in controls),
+        info=info,
+    )
     return rig.with_iterations(skin_rho=skin_chebyshev_rho)
 
 
-def jaw_follow_weights(points, on_mandible, frame, full_mm: float = JAW_FOLLOW_MM[0],
-                       reach_mm: float = JAW_FOLLOW_MM[1]) -> np.ndarray:
+def jaw_follow_weights(
+    points,
+    on_mandible,
+    frame,
+    full_mm: float = JAW_FOLLOW_MM[0],
+    reach_mm: float = JAW_FOLLOW_MM[1],
+) -> np.ndarray:
     """How much of the jaw motion the tissue attached at each skull point follows, in [0, 1].
 
     The skin and the muscles are attached to surface points of the skull. The thesis moves
@@ -410,8 +501,10 @@ def jaw_follow_weights(points, on_mandible, frame, full_mm: float = JAW_FOLLOW_M
     if reach_mm <= 0 or len(onm) == 0:
         return onm.astype(np.float64)
     if not 0.0 <= full_mm < reach_mm:
-        raise RigError(f"jaw_follow_mm must be (full, reach) with 0 <= full < reach (mm); got "
-                       f"({full_mm}, {reach_mm}).")
+        raise RigError(
+            f"jaw_follow_mm must be (full, reach) with 0 <= full < reach (mm); got "
+            f"({full_mm}, {reach_mm})."
+        )
     pts = np.asarray(points, np.float64)
     d = np.linalg.norm(pts - frame.points["Chin middle"], axis=1) / frame.mean_scale
     t = np.clip((d - full_mm) / (reach_mm - full_mm), 0.0, 1.0)
@@ -439,8 +532,10 @@ class SynthState(eqx.Module):
 def _check_acts(rig: Rig, activations):
     a = jnp.asarray(activations)
     if a.ndim != 1 or a.shape[0] != rig.n_controls:
-        raise RigError(f"activations must have shape ({rig.n_controls},) ordered as "
-                       f"rig.muscle_names; got {tuple(a.shape)}. Use jax.vmap for batches.")
+        raise RigError(
+            f"activations must have shape ({rig.n_controls},) ordered as "
+            f"rig.muscle_names; got {tuple(a.shape)}. Use jax.vmap for batches."
+        )
     if not jnp.issubdtype(a.dtype, jnp.floating):
         a = a.astype(jnp.result_type(float))
     return a
@@ -462,15 +557,23 @@ def _synth(rig: Rig, activations, jaw: JawPose, cheek_puff):
 
 
 @eqx.filter_jit
-def synthesize_state(rig: Rig, activations, jaw: JawPose | None = None, cheek_puff=0.0) -> SynthState:
+def synthesize_state(
+    rig: Rig, activations, jaw: JawPose | None = None, cheek_puff=0.0
+) -> SynthState:
     """:func:`synthesize`, returning the whole :class:`SynthState`."""
     jaw = JawPose() if jaw is None else jaw
     return _synth(rig, activations, jaw, cheek_puff)
 
 
 @eqx.filter_jit
-def equilibrium_gap(rig: Rig, activations, jaw: JawPose | None = None, cheek_puff=0.0, *,
-                    sweeps: tuple[int, int] = (1000, 1000)):
+def equilibrium_gap(
+    rig: Rig,
+    activations,
+    jaw: JawPose | None = None,
+    cheek_puff=0.0,
+    *,
+    sweeps: tuple[int, int] = (1000, 1000),
+):
     """How far a synthesis still is from the equilibrium it is heading for, mm per vertex.
 
     The synthesis of ``rig`` (at its own sweep counts) is continued with ``sweeps`` =
@@ -502,8 +605,10 @@ def equilibrium_gap(rig: Rig, activations, jaw: JawPose | None = None, cheek_puf
         RigError: an LTW rig, a sweep count below 1, or activations of the wrong shape.
     """
     if rig.backend == "ltw":
-        raise RigError("equilibrium_gap measures the PBD solve; an LTW rig integrates in time "
-                       "(see jaxface.ltw.rig.synthesize_ltw and its steps).")
+        raise RigError(
+            "equilibrium_gap measures the PBD solve; an LTW rig integrates in time "
+            "(see jaxface.ltw.rig.synthesize_ltw and its steps)."
+        )
     try:
         m_sweeps, s_sweeps = (int(v) for v in sweeps)
     except (TypeError, ValueError):
@@ -550,8 +655,17 @@ def synthesize(rig: Rig, activations, jaw: JawPose | None = None, cheek_puff=0.0
     return _synth(rig, activations, jaw, cheek_puff).skin
 
 
-def simulate(rig: Rig, activations, jaw: JawPose | None = None, *, dt: float = 0.0166,
-             damping: float = 0.2, muscle_sweeps: int = 4, skin_sweeps: int = 4, cheek_puff=None):
+def simulate(
+    rig: Rig,
+    activations,
+    jaw: JawPose | None = None,
+    *,
+    dt: float = 0.0166,
+    damping: float = 0.2,
+    muscle_sweeps: int = 4,
+    skin_sweeps: int = 4,
+    cheek_puff=None,
+):
     """Dynamic animation (thesis sec. 5.7): one time step per frame.
 
     Each frame: jaw transform; ``muscle_sweeps`` sweeps of the muscles from the previous frame;
@@ -573,14 +687,18 @@ def simulate(rig: Rig, activations, jaw: JawPose | None = None, *, dt: float = 0
     """
     A = jnp.asarray(activations)
     if A.ndim != 2 or A.shape[1] != rig.n_controls:
-        raise RigError(f"simulate needs activations of shape (T, {rig.n_controls}); got {tuple(A.shape)}.")
+        raise RigError(
+            f"simulate needs activations of shape (T, {rig.n_controls}); got {tuple(A.shape)}."
+        )
     T = A.shape[0]
     dtp = A.dtype if jnp.issubdtype(A.dtype, jnp.floating) else jnp.result_type(float)
     A = A.astype(dtp)
     if jaw is None:
         jaw = JawPose(jnp.zeros(T, dtp), jnp.zeros(T, dtp), jnp.zeros(T, dtp))
     puff = jnp.zeros(T, dtp) if cheek_puff is None else jnp.asarray(cheek_puff, dtp)
-    return _simulate(rig, A, jaw, puff, float(dt), float(damping), int(muscle_sweeps), int(skin_sweeps))
+    return _simulate(
+        rig, A, jaw, puff, float(dt), float(damping), int(muscle_sweeps), int(skin_sweeps)
+    )
 
 
 @eqx.filter_jit
@@ -601,7 +719,9 @@ def _simulate(rig, A, jaw, puff, dt, damping, muscle_sweeps, skin_sweeps):
         R, t = rig.jaw.transform(pose)
         R, t = R.astype(dtp), t.astype(dtp)
         skull = moved_skull_points(ms, R, t)
-        xm = jax.lax.fori_loop(0, muscle_sweeps, lambda _, x: muscle_sweep(ms, x, skull, a, inv_m), xm)
+        xm = jax.lax.fori_loop(
+            0, muscle_sweeps, lambda _, x: muscle_sweep(ms, x, skull, a, inv_m), xm
+        )
         tg = skin_targets(rig.skin, ms.support(skull, xm), a, p)
         v = v * (1.0 - damping)
         pred = jnp.where(dyn, xs + dt * v, xs)
@@ -609,6 +729,8 @@ def _simulate(rig, A, jaw, puff, dt, damping, muscle_sweeps, skin_sweeps):
         v = jnp.where(dyn, (new - xs) / dt, 0.0)
         return (xm, new, v), new
 
-    poses = JawPose(jaw.pitch_deg.astype(dtp), jaw.yaw_deg.astype(dtp), jaw.protrusion_mm.astype(dtp))
+    poses = JawPose(
+        jaw.pitch_deg.astype(dtp), jaw.yaw_deg.astype(dtp), jaw.protrusion_mm.astype(dtp)
+    )
     _, out = jax.lax.scan(frame, (x_m0, x_s0, v0), (A, poses, puff))
     return out

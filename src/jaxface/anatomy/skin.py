@@ -50,12 +50,12 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import dijkstra
 
 from .. import pbd
+from .._arrays import to_jax
 from ..errors import RigError
 from ..mesh import TriMesh
 from .frame import FaceFrame
 from .geometry import segment_cast, smooth_normals
 from .solver import fused_group
-from .._arrays import to_jax
 
 __all__ = [
     "SKIN_STIFFNESS",
@@ -85,8 +85,9 @@ FAT_RATIO_RANGE = (0.5, 2.0)
 #: face went from 217 to 1590 (its smallest singular value is a lid control held at 0).
 LID_CORNER_TAPER = 0.4
 #: Thesis skin stiffness values (sec. 5.5).
-SKIN_STIFFNESS = dict(stretch=0.15, cross=0.15, bend=0.95, area=0.95, anchor=0.2, volume=1.0,
-                      damping=0.2)
+SKIN_STIFFNESS = dict(
+    stretch=0.15, cross=0.15, bend=0.95, area=0.95, anchor=0.2, volume=1.0, damping=0.2
+)
 
 
 @dataclass
@@ -168,13 +169,13 @@ def bind_skin(skin: TriMesh, registry, *, scale: float = 1.0, normal_smoothing: 
             direction[rows] = sign
 
         allv = np.arange(V)
-        cast_union(allv, x, n, 12.0 * scale, +1)                      # outward, muscles
+        cast_union(allv, x, n, 12.0 * scale, +1)  # outward, muscles
         todo = np.flatnonzero(surf < 0)
-        cast_union(todo, x[todo], -n[todo], 45.0 * scale, -1)         # inward, muscles
+        cast_union(todo, x[todo], -n[todo], 45.0 * scale, -1)  # inward, muscles
     todo = np.flatnonzero(surf < 0)
-    cast(todo, x[todo], -n[todo], 60.0 * scale, [0, 1], -1)           # inward, skull
+    cast(todo, x[todo], -n[todo], 60.0 * scale, [0, 1], -1)  # inward, skull
     todo = np.flatnonzero(surf < 0)
-    if todo.size:                                                     # closest skull point
+    if todo.size:  # closest skull point
         best = np.full(todo.size, np.inf)
         for s in (0, 1):
             spts, dist = registry.meshes[s].closest_points(x[todo])
@@ -230,9 +231,13 @@ def _edge_matrix(skin: TriMesh, values: np.ndarray) -> sp.csr_matrix:
     """Symmetric ``(V, V)`` sparse matrix with ``values`` (one per edge) on the mesh edges."""
     e = skin.edges
     V = skin.n_vertices
-    return sp.coo_matrix((np.concatenate([values, values]), (np.concatenate([e[:, 0], e[:, 1]]),
-                                                              np.concatenate([e[:, 1], e[:, 0]]))),
-                         shape=(V, V)).tocsr()
+    return sp.coo_matrix(
+        (
+            np.concatenate([values, values]),
+            (np.concatenate([e[:, 0], e[:, 1]]), np.concatenate([e[:, 1], e[:, 0]])),
+        ),
+        shape=(V, V),
+    ).tocsr()
 
 
 def membrane_interpolation(skin: TriMesh, free: np.ndarray):
@@ -297,7 +302,9 @@ def footprint_matrix(skin: TriMesh, sigma, *, chunk: int = 512) -> sp.csr_matrix
         rows.append(ids[r])
         cols.append(c)
         vals.append(np.exp(-0.5 * (D[r, c] / sr[r]) ** 2))
-    M = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(V, V))
+    M = sp.csr_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(V, V)
+    )
     rs = np.asarray(M.sum(axis=1)).ravel()
     return sp.diags(1.0 / np.maximum(rs, 1e-300)) @ M
 
@@ -314,7 +321,9 @@ def mirror_vertices(skin: TriMesh, frame: FaceFrame, tol_mm: float = 1e-6) -> np
     return m
 
 
-def footprint_clusters(skin: TriMesh, spacing_mm: float, mirror: np.ndarray | None = None) -> sp.csr_matrix:
+def footprint_clusters(
+    skin: TriMesh, spacing_mm: float, mirror: np.ndarray | None = None
+) -> sp.csr_matrix:
     """Geodesic clusters of the skin's vertices, about ``spacing_mm`` (mm) across.
 
     Centres are picked greedily (vertex order): a vertex farther than ``spacing_mm / 2``
@@ -332,7 +341,9 @@ def footprint_clusters(skin: TriMesh, spacing_mm: float, mirror: np.ndarray | No
         sum to 1), the columns are ordered by centre vertex.
     """
     if not np.isfinite(spacing_mm) or spacing_mm <= 0:
-        raise RigError(f"the footprint's cluster spacing must be positive and finite (mm), got {spacing_mm!r}.")
+        raise RigError(
+            f"the footprint's cluster spacing must be positive and finite (mm), got {spacing_mm!r}."
+        )
     V = skin.n_vertices
     g = _geodesic_graph(skin)
     covered = np.zeros(V, bool)
@@ -342,19 +353,23 @@ def footprint_clusters(skin: TriMesh, spacing_mm: float, mirror: np.ndarray | No
             continue
         pick = [v] if mirror is None else sorted({v, int(mirror[v])})
         centres += pick
-        covered |= np.isfinite(dijkstra(g, directed=False, indices=pick, limit=0.5 * spacing_mm)).any(axis=0)
+        covered |= np.isfinite(
+            dijkstra(g, directed=False, indices=pick, limit=0.5 * spacing_mm)
+        ).any(axis=0)
     centres = np.asarray(sorted(centres), np.int64)
-    _, _, src = dijkstra(g, directed=False, indices=centres, min_only=True, return_predecessors=True)
+    _, _, src = dijkstra(
+        g, directed=False, indices=centres, min_only=True, return_predecessors=True
+    )
     own = np.searchsorted(centres, src)
     rows, cols = [np.arange(V)], [own]
     if mirror is not None:
         cmirror = np.searchsorted(centres, np.asarray(mirror)[centres])
-        other = cmirror[own[np.asarray(mirror)]]   # the mirror image of the mirror vertex's cluster
+        other = cmirror[own[np.asarray(mirror)]]  # the mirror image of the mirror vertex's cluster
         rows.append(np.arange(V))
         cols.append(other)
     r, c = np.concatenate(rows), np.concatenate(cols)
     P = sp.csr_matrix((np.ones(len(r)), (r, c)), shape=(V, len(centres)))
-    P.data = np.minimum(P.data, 1.0)               # a vertex counted twice for one cluster
+    P.data = np.minimum(P.data, 1.0)  # a vertex counted twice for one cluster
     return sp.diags(1.0 / np.asarray(P.sum(axis=1)).ravel()) @ P
 
 
@@ -389,7 +404,9 @@ class Footprint:
         d = np.asarray(d, np.float64).reshape(len(d), -1)
         s = d
         if self.n_clusters:
-            P = sp.csr_matrix((self.member_w, (self.member_v, self.member_c)), shape=(len(d), self.n_clusters))
+            P = sp.csr_matrix(
+                (self.member_w, (self.member_v, self.member_c)), shape=(len(d), self.n_clusters)
+            )
             s = np.concatenate([d, P.T @ d])
         W = sp.csr_matrix((self.vals, (self.rows, self.cols)), shape=(len(d), s.shape[0]))
         return W @ s
@@ -399,8 +416,9 @@ class Footprint:
         return self.apply(np.eye(n_vertices))
 
 
-def footprint_operator(skin: TriMesh, sigma, *, cluster_mm: float = 0.0,
-                       mirror: np.ndarray | None = None) -> Footprint:
+def footprint_operator(
+    skin: TriMesh, sigma, *, cluster_mm: float = 0.0, mirror: np.ndarray | None = None
+) -> Footprint:
     """The row-normalised geodesic Gaussian footprint (:func:`footprint_matrix`), with the
     wide rows summed over clusters of vertices instead of single vertices.
 
@@ -413,16 +431,20 @@ def footprint_operator(skin: TriMesh, sigma, *, cluster_mm: float = 0.0,
     :func:`footprint_matrix`. ``cluster_mm = 0``: no clusters (the exact matrix).
     """
     if not np.isfinite(cluster_mm) or cluster_mm < 0:
-        raise RigError(f"footprint_cluster_mm must be 0 (the exact footprint) or a positive width in mm, "
-                       f"got {cluster_mm!r}.")
+        raise RigError(
+            f"footprint_cluster_mm must be 0 (the exact footprint) or a positive width in mm, "
+            f"got {cluster_mm!r}."
+        )
     V = skin.n_vertices
-    F = footprint_matrix(skin, sigma).tocsr()          # also checks sigma
+    F = footprint_matrix(skin, sigma).tocsr()  # also checks sigma
     sig = np.broadcast_to(np.asarray(sigma, np.float64), (V,))
     wide = sig >= CLUSTER_RATIO * cluster_mm if cluster_mm > 0 else np.zeros(V, bool)
     none = np.zeros(0, np.int64)
     if not wide.any():
         F = F.tocoo()
-        return Footprint(F.row.astype(np.int64), F.col.astype(np.int64), F.data, none, none, np.zeros(0), 0)
+        return Footprint(
+            F.row.astype(np.int64), F.col.astype(np.int64), F.data, none, none, np.zeros(0), 0
+        )
     P = footprint_clusters(skin, cluster_mm, mirror)
     C = P.shape[1]
     count = np.asarray(P.sum(axis=0)).ravel()
@@ -431,10 +453,15 @@ def footprint_operator(skin: TriMesh, sigma, *, cluster_mm: float = 0.0,
     # a wide row's weight of a cluster: the mean of its weights of the cluster's vertices
     Fw = (F[wide_ids] @ P @ sp.diags(1.0 / count)).tocoo()
     Pc = P.tocoo()
-    return Footprint(np.concatenate([narrow[Fn.row], wide_ids[Fw.row]]).astype(np.int64),
-                     np.concatenate([Fn.col, V + Fw.col]).astype(np.int64),
-                     np.concatenate([Fn.data, Fw.data]),
-                     Pc.row.astype(np.int64), Pc.col.astype(np.int64), Pc.data, C)
+    return Footprint(
+        np.concatenate([narrow[Fn.row], wide_ids[Fw.row]]).astype(np.int64),
+        np.concatenate([Fn.col, V + Fw.col]).astype(np.int64),
+        np.concatenate([Fn.data, Fw.data]),
+        Pc.row.astype(np.int64),
+        Pc.col.astype(np.int64),
+        Pc.data,
+        C,
+    )
 
 
 def _upper_face_blend(skin: TriMesh, frame: FaceFrame) -> np.ndarray:
@@ -450,8 +477,17 @@ def _upper_face_blend(skin: TriMesh, frame: FaceFrame) -> np.ndarray:
     return _smoothstep(np.clip((y - y0) / max(y1 - y0, 1e-9), 0.0, 1.0))
 
 
-def _lower_upper_field(skin: TriMesh, frame: FaceFrame, value, name: str, what: str, *,
-                       low: float, high: float = np.inf, strict: bool = False) -> np.ndarray:
+def _lower_upper_field(
+    skin: TriMesh,
+    frame: FaceFrame,
+    value,
+    name: str,
+    what: str,
+    *,
+    low: float,
+    high: float = np.inf,
+    strict: bool = False,
+) -> np.ndarray:
     """``(V,)`` field of one value, or of a ``(lower, upper)`` pair blended from the eyes up to
     the brows (:func:`_upper_face_blend`).
 
@@ -462,7 +498,9 @@ def _lower_upper_field(skin: TriMesh, frame: FaceFrame, value, name: str, what: 
     v = np.atleast_1d(np.asarray(value, np.float64))
     below = (v.min() <= low if strict else v.min() < low) if v.size else True
     if v.shape not in ((1,), (2,)) or not np.all(np.isfinite(v)) or below or v.max() > high:
-        raise RigError(f"{name} must be a number or a (lower, upper) pair of {what}, got {value!r}.")
+        raise RigError(
+            f"{name} must be a number or a (lower, upper) pair of {what}, got {value!r}."
+        )
     if v.size == 1 or v[0] == v[1]:
         return np.full(skin.n_vertices, v[0])
     return v[0] + (v[1] - v[0]) * _upper_face_blend(skin, frame)
@@ -480,8 +518,18 @@ def footprint_sigma(skin: TriMesh, frame: FaceFrame, footprint_mm) -> np.ndarray
     Raises:
         RigError: not a positive number or a pair of positive numbers.
     """
-    return _lower_upper_field(skin, frame, footprint_mm, "footprint_mm",
-                              "positive numbers (reference mm)", low=0.0, strict=True) * frame.mean_scale
+    return (
+        _lower_upper_field(
+            skin,
+            frame,
+            footprint_mm,
+            "footprint_mm",
+            "positive numbers (reference mm)",
+            low=0.0,
+            strict=True,
+        )
+        * frame.mean_scale
+    )
 
 
 def eyelid_vertices(skin: TriMesh, frame: FaceFrame, side: str, threshold: float = 0.04):
@@ -606,13 +654,19 @@ class SkinSystem(eqx.Module):
         return int(self.rest.shape[0])
 
 
-def _hull_group(teeth: TriMesh | None, skin_x: np.ndarray, candidates_margin: float, n: int,
-                inv_mass: np.ndarray, clearance: float):
+def _hull_group(
+    teeth: TriMesh | None,
+    skin_x: np.ndarray,
+    candidates_margin: float,
+    n: int,
+    inv_mass: np.ndarray,
+    clearance: float,
+):
     if teeth is None:
         return None, None
     N, d = pbd.hull_planes(teeth.vertices)
     sd = skin_x @ N.T - d[None]
-    depth = sd.max(axis=1)                  # signed distance-like (>0 outside)
+    depth = sd.max(axis=1)  # signed distance-like (>0 outside)
     cand = np.flatnonzero((depth < candidates_margin) & (inv_mass > 0))
     if cand.size == 0:
         return None, (N, d)
@@ -622,13 +676,26 @@ def _hull_group(teeth: TriMesh | None, skin_x: np.ndarray, candidates_margin: fl
     return fused_group(g, n, name="teeth"), (N, d)
 
 
-def build_skin_system(skin: TriMesh, frame: FaceFrame, binding: Binding, support_ids, support_w,
-                      *, influence: np.ndarray, eyelids: list, teeth=(None, None),
-                      footprint_mm: float = 3.5, footprint_cluster_mm: float = 0.0,
-                      stiffness: dict | None = None,
-                      bending: bool = True, iterations: int = 12, lid_stiffness: float = 0.9,
-                      puff_mm: float = 8.0, membrane: np.ndarray | None = None,
-                      fat_volume: float = 0.0) -> SkinSystem:
+def build_skin_system(
+    skin: TriMesh,
+    frame: FaceFrame,
+    binding: Binding,
+    support_ids,
+    support_w,
+    *,
+    influence: np.ndarray,
+    eyelids: list,
+    teeth=(None, None),
+    footprint_mm: float = 3.5,
+    footprint_cluster_mm: float = 0.0,
+    stiffness: dict | None = None,
+    bending: bool = True,
+    iterations: int = 12,
+    lid_stiffness: float = 0.9,
+    puff_mm: float = 8.0,
+    membrane: np.ndarray | None = None,
+    fat_volume: float = 0.0,
+) -> SkinSystem:
     """Assemble the skin system (NumPy build time).
 
     Args:
@@ -656,9 +723,15 @@ def build_skin_system(skin: TriMesh, frame: FaceFrame, binding: Binding, support
             0 = off, 1 = full; one value, or a ``(lower, upper)`` pair blended like
             ``footprint_mm``.
     """
-    fat_gain = _lower_upper_field(skin, frame, fat_volume, "fat_volume",
-                                  "numbers in [0, 1] (0 = off, 1 = the fat layer keeps its volume)",
-                                  low=0.0, high=1.0)
+    fat_gain = _lower_upper_field(
+        skin,
+        frame,
+        fat_volume,
+        "fat_volume",
+        "numbers in [0, 1] (0 = off, 1 = the fat layer keeps its volume)",
+        low=0.0,
+        high=1.0,
+    )
     k = dict(SKIN_STIFFNESS)
     k.update(stiffness or {})
     x = skin.vertices
@@ -666,8 +739,10 @@ def build_skin_system(skin: TriMesh, frame: FaceFrame, binding: Binding, support
     infl = np.asarray(influence, np.float64)
     dyn = infl > 1e-4
     if not dyn.any():
-        raise RigError("no skin vertex is under the influence of a muscle or the jaw: the "
-                       "muscle map and the skin do not overlap. Check the landmarks.")
+        raise RigError(
+            "no skin vertex is under the influence of a muscle or the jaw: the "
+            "muscle map and the skin do not overlap. Check the landmarks."
+        )
     inv_mass = dyn.astype(np.float64)
     groups = []
     e = skin.edges
@@ -675,29 +750,50 @@ def build_skin_system(skin: TriMesh, frame: FaceFrame, binding: Binding, support
     te = np.concatenate([e, pairs[:, 2:]]) if len(pairs) else e
     tk = np.concatenate([np.full(len(e), k["stretch"]), np.full(len(pairs), k["cross"])])
     keep = dyn[te].any(axis=1)
-    groups.append(fused_group(pbd.distance_constraints(te[keep], x, stiffness=tk[keep]), V,
-                              omega=1.5, name="skin stretch"))
+    groups.append(
+        fused_group(
+            pbd.distance_constraints(te[keep], x, stiffness=tk[keep]),
+            V,
+            omega=1.5,
+            name="skin stretch",
+        )
+    )
     tri = skin.triangles
     tkeep = dyn[tri].any(axis=1)
     if k["area"] > 0 and tkeep.any():
-        groups.append(fused_group(pbd.area_constraints(tri[tkeep], x, stiffness=k["area"]), V,
-                                  omega=1.0, name="skin area"))
+        groups.append(
+            fused_group(
+                pbd.area_constraints(tri[tkeep], x, stiffness=k["area"]),
+                V,
+                omega=1.0,
+                name="skin area",
+            )
+        )
     if bending and k["bend"] > 0 and len(pairs):
         bkeep = dyn[pairs].any(axis=1)
-        groups.append(fused_group(pbd.bending_constraints(pairs[bkeep], x, stiffness=k["bend"]), V,
-                                  omega=1.0, name="skin bending"))
+        groups.append(
+            fused_group(
+                pbd.bending_constraints(pairs[bkeep], x, stiffness=k["bend"]),
+                V,
+                omega=1.0,
+                name="skin bending",
+            )
+        )
     from .skull import head_centre
 
     vol = None
     if k["volume"] > 0:
         vol = pbd.volume_constraint(tri, x, origin=head_centre(frame), stiffness=k["volume"])
     # footprint
-    F = footprint_operator(skin, footprint_sigma(skin, frame, footprint_mm),
-                           cluster_mm=float(footprint_cluster_mm) * frame.mean_scale,
-                           mirror=mirror_vertices(skin, frame))
+    F = footprint_operator(
+        skin,
+        footprint_sigma(skin, frame, footprint_mm),
+        cluster_mm=float(footprint_cluster_mm) * frame.mean_scale,
+        mirror=mirror_vertices(skin, frame),
+    )
     # eyelids
     lid_ids, lid_fall, lid_upper, lid_side, piv, axs, angs = [], [], [], [], [], [], []
-    for (ids, fall, upper, side, pivot, axis, angles) in eyelids:
+    for ids, fall, upper, side, pivot, axis, angles in eyelids:
         lid_ids.append(ids)
         lid_fall.append(fall)
         lid_upper.append(upper)
@@ -733,13 +829,22 @@ def build_skin_system(skin: TriMesh, frame: FaceFrame, binding: Binding, support
         fat_gain[mem_border] = 0.0
     fat_tri = tri[tkeep] if fat_gain.max() > 0 else np.zeros((0, 3), np.int64)
     return SkinSystem(
-        rest=to_jax(x), bind_ids=to_jax(support_ids), bind_w=to_jax(support_w),
+        rest=to_jax(x),
+        bind_ids=to_jax(support_ids),
+        bind_w=to_jax(support_w),
         bind_offset=to_jax(x - binding.point),
-        fp_rows=to_jax(F.rows), fp_cols=to_jax(F.cols), fp_vals=to_jax(F.vals),
-        fp_member_v=to_jax(F.member_v), fp_member_c=to_jax(F.member_c), fp_member_w=to_jax(F.member_w),
+        fp_rows=to_jax(F.rows),
+        fp_cols=to_jax(F.cols),
+        fp_vals=to_jax(F.vals),
+        fp_member_v=to_jax(F.member_v),
+        fp_member_c=to_jax(F.member_c),
+        fp_member_w=to_jax(F.member_w),
         fp_count=to_jax(np.bincount(F.member_c, weights=F.member_w, minlength=F.n_clusters)),
-        influence=to_jax(infl), inv_mass=to_jax(inv_mass), anchor_k=to_jax(anchor_k),
-        anchor_ids=jnp.arange(V), anchor_inv_count=to_jax(acnt),
+        influence=to_jax(infl),
+        inv_mass=to_jax(inv_mass),
+        anchor_k=to_jax(anchor_k),
+        anchor_ids=jnp.arange(V),
+        anchor_inv_count=to_jax(acnt),
         lid_ids=to_jax(np.concatenate(lid_ids) if lid_ids else np.zeros(0, np.int64)),
         lid_fall=to_jax(np.concatenate(lid_fall) if lid_fall else np.zeros(0)),
         lid_upper=to_jax(np.concatenate(lid_upper) if lid_upper else np.zeros(0, bool)),
@@ -748,10 +853,17 @@ def build_skin_system(skin: TriMesh, frame: FaceFrame, binding: Binding, support
         lid_axis=to_jax(np.stack(axs) if axs else np.zeros((0, 3))),
         lid_angles=to_jax(np.stack(angs) if angs else np.zeros((0, 1, 2))),
         puff_dir=to_jax(puff),
-        mem_ids=to_jax(mem_ids), mem_border=to_jax(mem_border), mem_H=to_jax(mem_H),
-        fat_tri=to_jax(fat_tri), fat_area0=to_jax(vertex_areas(binding.point, fat_tri, V)),
-        fat_gain=to_jax(fat_gain), fat_ratio=tuple(float(v) for v in FAT_RATIO_RANGE),
-        groups=tuple(groups), volume=vol, upper_hull=up_g, lower_hull=lo_g,
+        mem_ids=to_jax(mem_ids),
+        mem_border=to_jax(mem_border),
+        mem_H=to_jax(mem_H),
+        fat_tri=to_jax(fat_tri),
+        fat_area0=to_jax(vertex_areas(binding.point, fat_tri, V)),
+        fat_gain=to_jax(fat_gain),
+        fat_ratio=tuple(float(v) for v in FAT_RATIO_RANGE),
+        groups=tuple(groups),
+        volume=vol,
+        upper_hull=up_g,
+        lower_hull=lo_g,
         lower_planes=(None if lo_planes is None else (to_jax(lo_planes[0]), to_jax(lo_planes[1]))),
         iterations=int(iterations),
     )
@@ -785,20 +897,28 @@ def skin_targets(sk: SkinSystem, G, activations, cheek_puff=0.0):
     disp = sp_ + offset - rest
     src = disp
     if sk.fp_count.shape[0]:
-        sums = jax.ops.segment_sum(sk.fp_member_w.astype(dt)[:, None] * disp[sk.fp_member_v], sk.fp_member_c,
-                                   num_segments=sk.fp_count.shape[0])
+        sums = jax.ops.segment_sum(
+            sk.fp_member_w.astype(dt)[:, None] * disp[sk.fp_member_v],
+            sk.fp_member_c,
+            num_segments=sk.fp_count.shape[0],
+        )
         src = jnp.concatenate([disp, sums])
-    disp = jax.ops.segment_sum(sk.fp_vals.astype(dt)[:, None] * src[sk.fp_cols], sk.fp_rows,
-                               num_segments=rest.shape[0])
+    disp = jax.ops.segment_sum(
+        sk.fp_vals.astype(dt)[:, None] * src[sk.fp_cols], sk.fp_rows, num_segments=rest.shape[0]
+    )
     disp = disp * sk.influence.astype(dt)[:, None]
     if sk.mem_ids.shape[0]:
         disp = disp.at[sk.mem_ids].set(sk.mem_H.astype(dt) @ disp[sk.mem_border])
     if sk.lid_ids.shape[0]:
         a = jnp.asarray(activations, dt)
-        ang = jnp.einsum("c,scl->sl", a, sk.lid_angles.astype(dt)) * (jnp.pi / 180.0)   # (sides, 2)
-        per = jnp.where(sk.lid_upper, ang[sk.lid_side, 0], ang[sk.lid_side, 1]) * sk.lid_fall.astype(dt)
+        ang = jnp.einsum("c,scl->sl", a, sk.lid_angles.astype(dt)) * (jnp.pi / 180.0)  # (sides, 2)
+        per = jnp.where(
+            sk.lid_upper, ang[sk.lid_side, 0], ang[sk.lid_side, 1]
+        ) * sk.lid_fall.astype(dt)
         p0 = rest[sk.lid_ids]
-        rot = _rotate(p0, sk.lid_pivot.astype(dt)[sk.lid_side], sk.lid_axis.astype(dt)[sk.lid_side], per)
+        rot = _rotate(
+            p0, sk.lid_pivot.astype(dt)[sk.lid_side], sk.lid_axis.astype(dt)[sk.lid_side], per
+        )
         disp = disp.at[sk.lid_ids].add(rot - p0)
     disp = disp + jnp.asarray(cheek_puff, dt) * sk.puff_dir.astype(dt)
     return rest + disp
@@ -809,7 +929,7 @@ def vertex_areas(points, tri, n: int, xp=np):
     with the vertices at ``points`` ``(n, 3)`` mm. NumPy (``xp=np``) or JAX (``xp=jnp``)."""
     if tri.shape[0] == 0:
         return xp.zeros(n)
-    p = points[tri]                                                        # (T, 3, 3)
+    p = points[tri]  # (T, 3, 3)
     c = xp.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
     a = 0.5 * xp.sqrt(xp.sum(c * c, axis=1) + 1e-24)
     if xp is np:
@@ -894,10 +1014,14 @@ def solve_skin(sk: SkinSystem, targets, R, t, *, iterations: int | None = None, 
         xt = jnp.where(dyn, targets, rest).T
         P = tuple(xt[:, vol.idx[:, k]] for k in range(3))
         v_ = eqx.tree_at(lambda q: q.origin, vol, vol.origin.astype(dt))
-        vol = eqx.tree_at(lambda q: q.rest, vol, v_.volume_terms(P)[0].reshape(1).astype(vol.rest.dtype))
+        vol = eqx.tree_at(
+            lambda q: q.rest, vol, v_.volume_terms(P)[0].reshape(1).astype(vol.rest.dtype)
+        )
     lower = None
     if sk.lower_hull is not None:
-        lower = pbd.transform_planes(sk.lower_planes[0].astype(dt), sk.lower_planes[1].astype(dt), R.astype(dt), t.astype(dt))
+        lower = pbd.transform_planes(
+            sk.lower_planes[0].astype(dt), sk.lower_planes[1].astype(dt), R.astype(dt), t.astype(dt)
+        )
     kk = sk.anchor_k.astype(dt)[:, None]
 
     def body(x):

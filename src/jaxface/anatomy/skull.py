@@ -107,7 +107,7 @@ class Skull:
         """``[cranium, mandible]``."""
         return [self.cranium, self.mandible]
 
-    def with_teeth(self, upper_teeth: TriMesh | None, lower_teeth: TriMesh | None) -> "Skull":
+    def with_teeth(self, upper_teeth: TriMesh | None, lower_teeth: TriMesh | None) -> Skull:
         """A copy with the given teeth (mm)."""
         return replace(self, upper_teeth=upper_teeth, lower_teeth=lower_teeth)
 
@@ -152,8 +152,11 @@ def depth_sites(skin: TriMesh, landmarks) -> tuple[list[str], np.ndarray, np.nda
     add("upper lip", P["Upper lip outer middle"], T["upper lip"])
     add("lower lip", P["Lower lip outer middle"], T["lower lip"])
     add("chin", P["Chin middle"], T["chin"])
-    add("mentolabial sulcus", 0.5 * (P["Lower lip outer middle"] + P["Chin middle"]),
-        T["mentolabial sulcus"])
+    add(
+        "mentolabial sulcus",
+        0.5 * (P["Lower lip outer middle"] + P["Chin middle"]),
+        T["mentolabial sulcus"],
+    )
     add("menton", fr.menton, T["menton"], True, fr.axes[1])  # ray from below the chin
     brow_y = L(glab)[1]
     add("forehead", fr.to_world([0.0, brow_y + 34.0, 15.0]), T["forehead"], True)
@@ -163,7 +166,9 @@ def depth_sites(skin: TriMesh, landmarks) -> tuple[list[str], np.ndarray, np.nda
         add(f"infraorbital {side}", fr.to_world(eye + [0.0, -14.0, 0.0]), T["infraorbital"], True)
         oc = L(P[f"Outer {side} eye corner"])
         add(f"zygomatic {side}", fr.to_world(oc + [sgn * 4.0, -22.0, 0.0]), T["zygomatic"], True)
-        add(f"mid-masseter {side}", fr.to_world([sgn * 50.0, -62.0, -35.0]), T["mid-masseter"], True)
+        add(
+            f"mid-masseter {side}", fr.to_world([sgn * 50.0, -62.0, -35.0]), T["mid-masseter"], True
+        )
         add(f"gonion {side}", fr.gonions[0 if sgn > 0 else 1], T["gonion"], True)
         add(f"temple {side}", fr.to_world([sgn * 62.0, 22.0, -35.0]), T["temple"], True)
         add(f"forehead {side}", fr.to_world([sgn * 32.0, brow_y + 28.0, 5.0]), T["forehead"], True)
@@ -237,27 +242,37 @@ def mandible_mask(points, landmarks) -> np.ndarray:
     fr = landmarks if isinstance(landmarks, FaceFrame) else face_frame(landmarks)
     loc = fr.to_local(np.atleast_2d(points))
     cz, cy = fr.to_local(fr.condyles[0])[[2, 1]]
-    mc = 0.5 * (fr.to_local(fr.points["Left mouth corner"]) + fr.to_local(fr.points["Right mouth corner"]))
+    mc = 0.5 * (
+        fr.to_local(fr.points["Left mouth corner"]) + fr.to_local(fr.points["Right mouth corner"])
+    )
     st = fr.to_local(fr.stomion)
     me = fr.to_local(fr.menton)
     go = fr.to_local(fr.gonions[0])
-    poly = np.array([
-        (cz - 12.0, cy + 6.0),
-        (cz + 10.0, cy + 6.0),
-        (mc[2] - 6.0, st[1]),
-        (400.0, st[1]),
-        (400.0, me[1] - 6.0),
-        (me[2], me[1] - 6.0),
-        (go[2] - 8.0, go[1] - 6.0),
-        (cz - 12.0, cy - 10.0),
-    ])
+    poly = np.array(
+        [
+            (cz - 12.0, cy + 6.0),
+            (cz + 10.0, cy + 6.0),
+            (mc[2] - 6.0, st[1]),
+            (400.0, st[1]),
+            (400.0, me[1] - 6.0),
+            (me[2], me[1] - 6.0),
+            (go[2] - 8.0, go[1] - 6.0),
+            (cz - 12.0, cy - 10.0),
+        ]
+    )
     return MplPath(poly).contains_points(loc[:, [2, 1]])
 
 
 # ------------------------------------------------------------------------------ estimate
-def estimate_skull(skin: TriMesh, landmarks, *, normal_smoothing: int = 8,
-                   surface_smoothing: int = 10, upper_teeth: TriMesh | None = None,
-                   lower_teeth: TriMesh | None = None) -> Skull:
+def estimate_skull(
+    skin: TriMesh,
+    landmarks,
+    *,
+    normal_smoothing: int = 8,
+    surface_smoothing: int = 10,
+    upper_teeth: TriMesh | None = None,
+    lower_teeth: TriMesh | None = None,
+) -> Skull:
     """Estimate a skull under a skin (Lee-Terzopoulos-Waters 1995 offset surface).
 
     Each skin vertex is moved inward along its smoothed normal by the local soft-tissue depth
@@ -296,9 +311,14 @@ def estimate_skull(skin: TriMesh, landmarks, *, normal_smoothing: int = 8,
     offset_mesh = TriMesh(off, skin.triangles, validate=False)
     cranium, _ = offset_mesh.submesh(~tmask)
     mandible, _ = offset_mesh.submesh(tmask)
-    return Skull(cranium=cranium, mandible=mandible, upper_teeth=upper_teeth,
-                 lower_teeth=lower_teeth, source="estimated",
-                 extras={"depth": depth, "mandible_vertices": vmask, "offset_mesh": offset_mesh})
+    return Skull(
+        cranium=cranium,
+        mandible=mandible,
+        upper_teeth=upper_teeth,
+        lower_teeth=lower_teeth,
+        source="estimated",
+        extras={"depth": depth, "mandible_vertices": vmask, "offset_mesh": offset_mesh},
+    )
 
 
 # ------------------------------------------------------------------------------ loading
@@ -321,8 +341,9 @@ def _as_mesh(m, units: str, what: str, rotation=None) -> TriMesh:
     return mesh
 
 
-def load_skull(cranium, mandible, *, units: str = "mm", upper_teeth=None, lower_teeth=None,
-               rotation=None) -> Skull:
+def load_skull(
+    cranium, mandible, *, units: str = "mm", upper_teeth=None, lower_teeth=None, rotation=None
+) -> Skull:
     """A user-supplied skull: cranium (with maxilla) and a separate mandible.
 
     Args:
@@ -339,15 +360,20 @@ def load_skull(cranium, mandible, *, units: str = "mm", upper_teeth=None, lower_
     if isinstance(cranium, (list, tuple)):
         parts = [_as_mesh(c, units, "cranium", rotation) for c in cranium]
         offs = np.cumsum([0] + [p.n_vertices for p in parts])[:-1]
-        cranium_mesh = TriMesh(np.concatenate([p.vertices for p in parts]),
-                               np.concatenate([p.triangles + o for p, o in zip(parts, offs)]),
-                               validate=False)
+        cranium_mesh = TriMesh(
+            np.concatenate([p.vertices for p in parts]),
+            np.concatenate([p.triangles + o for p, o in zip(parts, offs)]),
+            validate=False,
+        )
     else:
         cranium_mesh = _as_mesh(cranium, units, "cranium", rotation)
-    return Skull(cranium=cranium_mesh, mandible=_as_mesh(mandible, units, "mandible", rotation),
-                 upper_teeth=_as_mesh(upper_teeth, units, "upper teeth", rotation),
-                 lower_teeth=_as_mesh(lower_teeth, units, "lower teeth", rotation),
-                 source="user")
+    return Skull(
+        cranium=cranium_mesh,
+        mandible=_as_mesh(mandible, units, "mandible", rotation),
+        upper_teeth=_as_mesh(upper_teeth, units, "upper teeth", rotation),
+        lower_teeth=_as_mesh(lower_teeth, units, "lower teeth", rotation),
+        source="user",
+    )
 
 
 #: Rotation from ArtiSynth's face-model axes (x backward, y toward the subject's right,
@@ -368,13 +394,20 @@ def load_artisynth_skull(folder) -> Skull:
         DataNotFoundError: a file is missing.
     """
     folder = Path(folder)
-    files = {k: folder / f for k, f in (("cranium", "ubccranium.obj"),
-                                        ("maxilla", "ubcmaxilla.obj"), ("jaw", "ubcjaw.obj"))}
+    files = {
+        k: folder / f
+        for k, f in (
+            ("cranium", "ubccranium.obj"),
+            ("maxilla", "ubcmaxilla.obj"),
+            ("jaw", "ubcjaw.obj"),
+        )
+    }
     for k, f in files.items():
         if not f.exists():
             raise DataNotFoundError(f"ArtiSynth {k} mesh not found: {f}.")
-    return load_skull([files["cranium"], files["maxilla"]], files["jaw"], units="m",
-                      rotation=ARTISYNTH_TO_JAXFACE)
+    return load_skull(
+        [files["cranium"], files["maxilla"]], files["jaw"], units="m", rotation=ARTISYNTH_TO_JAXFACE
+    )
 
 
 # ------------------------------------------------------------------------------ fitting
@@ -425,8 +458,16 @@ def enrich_correspondences(skin: TriMesh, landmarks, pairs=ENRICHMENT_PAIRS) -> 
     return hits.positions
 
 
-def fit_skull(skull: Skull, template_skin: TriMesh, template_landmarks, skin: TriMesh,
-              landmarks, *, kernel: str = "multiquadric", enrich: bool = True) -> Skull:
+def fit_skull(
+    skull: Skull,
+    template_skin: TriMesh,
+    template_landmarks,
+    skin: TriMesh,
+    landmarks,
+    *,
+    kernel: str = "multiquadric",
+    enrich: bool = True,
+) -> Skull:
     """Fit a template skull into another skin with a landmark RBF (thesis sec. 5.4).
 
     The morph is fitted on the landmark pairs (template skin -> target skin) plus, if
@@ -469,7 +510,12 @@ def fit_skull(skull: Skull, template_skin: TriMesh, template_landmarks, skin: Tr
         diag = np.linalg.norm(np.ptp(skin.vertices, axis=0))
     except ValueError as e:  # pragma: no cover - empty mesh
         raise MeshError(f"fit_skull: empty skin mesh ({e}).") from None
-    return Skull(cranium=warp(skull.cranium), mandible=warp(skull.mandible),
-                 upper_teeth=warp(skull.upper_teeth), lower_teeth=warp(skull.lower_teeth),
-                 source="fitted", thickness_scale=float(diag / diag_t) * skull.thickness_scale,
-                 extras={"morph": morph})
+    return Skull(
+        cranium=warp(skull.cranium),
+        mandible=warp(skull.mandible),
+        upper_teeth=warp(skull.upper_teeth),
+        lower_teeth=warp(skull.lower_teeth),
+        source="fitted",
+        thickness_scale=float(diag / diag_t) * skull.thickness_scale,
+        extras={"morph": morph},
+    )

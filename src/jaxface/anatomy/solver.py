@@ -43,8 +43,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..constraints import AnchorConstraints, Constraints, HullConstraints, VolumeConstraint
 from .._arrays import to_jax
+from ..constraints import AnchorConstraints, Constraints, HullConstraints, VolumeConstraint
 
 __all__ = ["FusedGroup", "fused_group", "sweep", "anchor_sweep", "iterate", "check_rho"]
 
@@ -76,7 +76,7 @@ def fused_group(c: Constraints, n: int, *, omega: float = 1.0, name: str = "") -
         name: label (for messages).
     """
     if not isinstance(c, VolumeConstraint) and c.arranged:
-        c = c.user_order()   # a group taken from a coloured System: back to one block
+        c = c.user_order()  # a group taken from a coloured System: back to one block
     idx = np.asarray(c.idx)
     cnt = np.bincount(idx.ravel(), minlength=n).astype(np.float64)
     inv = np.where(cnt > 0, 1.0 / np.maximum(cnt, 1.0), 0.0)
@@ -97,7 +97,9 @@ def _project_group(g: FusedGroup, x, inv_mass):
         P = tuple(xt[:, idx[:, k]] for k in range(3))
         c_ = eqx.tree_at(lambda q: (q.origin, q.rest), c, (c.origin.astype(dt), c.rest.astype(dt)))
         V, gt = c_.volume_terms(P)
-        G = jax.ops.segment_sum(jnp.concatenate([gt[k].T for k in range(3)]), idx.T.reshape(-1), num_segments=n)
+        G = jax.ops.segment_sum(
+            jnp.concatenate([gt[k].T for k in range(3)]), idx.T.reshape(-1), num_segments=n
+        )
         denom = jnp.sum(inv_mass * jnp.sum(G * G, axis=1))
         C = V - c_.rest[0]
         ok = denom > 0
@@ -106,7 +108,9 @@ def _project_group(g: FusedGroup, x, inv_mass):
     if isinstance(c, AnchorConstraints):
         i = c.idx[:, 0]
         w = inv_mass[i]
-        dp = jnp.where((w > 0)[:, None], c.stiffness.astype(dt)[:, None] * (c.target.astype(dt) - x[i]), 0.0)
+        dp = jnp.where(
+            (w > 0)[:, None], c.stiffness.astype(dt)[:, None] * (c.target.astype(dt) - x[i]), 0.0
+        )
         return x + jax.ops.segment_sum(dp, i, num_segments=n) * g.inv_count.astype(dt)[:, None]
     # generic kind: values and gradients from the pbd kernel, one block
     cc = c
@@ -161,7 +165,9 @@ def anchor_sweep(x, idx, target, stiffness, inv_count, inv_mass):
     """
     dt = x.dtype
     w = inv_mass.astype(dt)[idx]
-    dp = jnp.where((w > 0)[:, None], stiffness.astype(dt)[:, None] * (target.astype(dt) - x[idx]), 0.0)
+    dp = jnp.where(
+        (w > 0)[:, None], stiffness.astype(dt)[:, None] * (target.astype(dt) - x[idx]), 0.0
+    )
     return x + jax.ops.segment_sum(dp, idx, num_segments=x.shape[0]) * inv_count.astype(dt)[:, None]
 
 
@@ -171,8 +177,10 @@ def check_rho(rho, what: str = "the Chebyshev spectral-radius estimate") -> floa
 
     rho = float(rho)
     if not 0.0 <= rho < 1.0:
-        raise RigError(f"{what} must be in [0, 1), got {rho} (0.95-0.97 suits the skin solve; "
-                       "0 = plain sweeps).")
+        raise RigError(
+            f"{what} must be in [0, 1), got {rho} (0.95-0.97 suits the skin solve; "
+            "0 = plain sweeps)."
+        )
     return rho
 
 
@@ -223,7 +231,9 @@ def iterate(step, x, iterations: int, rho: float = 0.0, delay: int = 4, *, check
     def body(k, carry):
         x, prev, w = carry
         y = step(x)
-        w_new = jnp.where(k < delay, 1.0, jnp.where(k == delay, 2.0 / (2.0 - r2), 4.0 / (4.0 - r2 * w)))
+        w_new = jnp.where(
+            k < delay, 1.0, jnp.where(k == delay, 2.0 / (2.0 - r2), 4.0 / (4.0 - r2 * w))
+        )
         w_new = w_new.astype(dt)
         return w_new * (y - prev) + prev, x, w_new
 

@@ -24,7 +24,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import List, Optional
+from typing import List
 
 import typer
 
@@ -52,8 +52,10 @@ def find_benchmarks(directory: Path | None = None, *, cwd: Path | None = None) -
     if directory is not None:
         d = Path(directory)
         if not _has_benchmarks(d):
-            raise DataNotFoundError(f"--dir {d}: no bench_*.py scripts there "
-                                    f"({'folder does not exist' if not d.is_dir() else 'folder has none'}).")
+            raise DataNotFoundError(
+                f"--dir {d}: no bench_*.py scripts there "
+                f"({'folder does not exist' if not d.is_dir() else 'folder has none'})."
+            )
         return d.resolve()
     start = Path(cwd) if cwd is not None else Path.cwd()
     tried = []
@@ -71,7 +73,8 @@ def find_benchmarks(directory: Path | None = None, *, cwd: Path | None = None) -
         "no benchmarks folder found: the benchmarks are part of the jaxface repository, not of "
         f"the installed package. Looked for benchmarks/bench_*.py in {start} and its parents and "
         f"beside the package ({cand}). Run `jaxface bench` inside a jaxface checkout, or pass "
-        "--dir path/to/jaxface/benchmarks.")
+        "--dir path/to/jaxface/benchmarks."
+    )
 
 
 def discover(folder: Path, only: list[str] | None = None) -> list[Path]:
@@ -131,18 +134,29 @@ def run_benchmark(script: Path, *, quick: bool = False, timeout: float | None = 
     env.setdefault("MPLBACKEND", "Agg")
     t0 = time.perf_counter()
     try:
-        proc = subprocess.run(cmd, cwd=root, env=env, capture_output=True, text=True, timeout=timeout)
+        proc = subprocess.run(
+            cmd, cwd=root, env=env, capture_output=True, text=True, timeout=timeout
+        )
         status = "ok" if proc.returncode == 0 else "failed"
         rc, output = proc.returncode, proc.stdout + proc.stderr
     except subprocess.TimeoutExpired as e:
+
         def _text(x):
             return x.decode(errors="replace") if isinstance(x, bytes) else (x or "")
 
         status, rc, output = "timeout", None, _text(e.stdout) + _text(e.stderr)
     seconds = time.perf_counter() - t0
     written = result.exists() and result.stat().st_mtime_ns != before
-    return dict(name=script.stem, script=str(script), status=status, returncode=rc, seconds=seconds,
-                output=output, quick=quick_ok, result=str(result) if written else None)
+    return dict(
+        name=script.stem,
+        script=str(script),
+        status=status,
+        returncode=rc,
+        seconds=seconds,
+        output=output,
+        quick=quick_ok,
+        result=str(result) if written else None,
+    )
 
 
 def _last_error_line(output: str) -> str:
@@ -152,26 +166,36 @@ def _last_error_line(output: str) -> str:
 
 def register(app: typer.Typer) -> None:
     """Add ``jaxface bench`` to ``app``."""
-    from ..cli import EXIT_ERROR, _EPILOG, console, handle_errors
+    from ..cli import _EPILOG, EXIT_ERROR, console, handle_errors
 
     @app.command(epilog=_EPILOG)
     @handle_errors
     def bench(
-        quick: bool = typer.Option(False, "--quick", help="Small settings (passed to each script "
-                                   "that accepts --quick)."),
-        only: Optional[List[str]] = typer.Option(  # noqa: UP006, UP007
-            None, "--only", help="Run only this benchmark (name with or without 'bench_'; repeat "
-            "or comma-separate for several)."),
-        directory: Optional[Path] = typer.Option(  # noqa: UP007
-            None, "--dir", help="The benchmarks folder (default: ./benchmarks, a parent's, or the "
-            "one beside an editable install)."),
-        timeout: Optional[float] = typer.Option(  # noqa: UP007
-            None, "--timeout", min=1.0, help="Seconds allowed per benchmark (default: no limit)."),
+        quick: bool = typer.Option(
+            False, "--quick", help="Small settings (passed to each script that accepts --quick)."
+        ),
+        only: List[str] | None = typer.Option(  # noqa: UP006, UP007
+            None,
+            "--only",
+            help="Run only this benchmark (name with or without 'bench_'; repeat "
+            "or comma-separate for several).",
+        ),
+        directory: Path | None = typer.Option(  # noqa: UP007
+            None,
+            "--dir",
+            help="The benchmarks folder (default: ./benchmarks, a parent's, or the "
+            "one beside an editable install).",
+        ),
+        timeout: float | None = typer.Option(  # noqa: UP007
+            None, "--timeout", min=1.0, help="Seconds allowed per benchmark (default: no limit)."
+        ),
         list_only: bool = typer.Option(False, "--list", help="List the benchmarks and exit."),
-        json_out: Optional[Path] = typer.Option(  # noqa: UP007
-            None, "--json", help="Also write the summary (status, seconds, result files) as JSON."),
-        show_output: bool = typer.Option(True, "--output/--no-output",
-                                         help="Print each benchmark's own tables."),
+        json_out: Path | None = typer.Option(  # noqa: UP007
+            None, "--json", help="Also write the summary (status, seconds, result files) as JSON."
+        ),
+        show_output: bool = typer.Option(
+            True, "--output/--no-output", help="Print each benchmark's own tables."
+        ),
     ):
         """Run the benchmarks of a jaxface checkout (benchmarks/bench_*.py), each in a
         subprocess, and print a summary table. Each script prints its tables and writes
@@ -196,26 +220,39 @@ def register(app: typer.Typer) -> None:
             table.add_column("--quick")
             table.add_column("script")
             for s in scripts:
-                table.add_row(s.stem.removeprefix("bench_"), "yes" if accepts_quick(s) else "no", s.name)
+                table.add_row(
+                    s.stem.removeprefix("bench_"), "yes" if accepts_quick(s) else "no", s.name
+                )
             console.print(table)
             return
         runs = []
         for k, script in enumerate(scripts, 1):
-            label = f"[{k}/{len(scripts)}] {script.stem}" + (" --quick" if quick and accepts_quick(script) else "")
+            label = f"[{k}/{len(scripts)}] {script.stem}" + (
+                " --quick" if quick and accepts_quick(script) else ""
+            )
             with console.status(f"[bold]jaxface bench[/]: running {label}", spinner="dots"):
                 r = run_benchmark(script, quick=quick, timeout=timeout)
             runs.append(r)
             colour = "green" if r["status"] == "ok" else "red"
-            console.print(f"[{colour}]{r['status']}[/] {label} [dim]({r['seconds']:.1f} s)[/]", markup=True)
+            console.print(
+                f"[{colour}]{r['status']}[/] {label} [dim]({r['seconds']:.1f} s)[/]", markup=True
+            )
             if show_output or r["status"] != "ok":
                 text = r["output"].rstrip()
                 if r["status"] != "ok" and not show_output:
                     text = "\n".join(text.splitlines()[-20:])
                 if text:
                     console.print(text, markup=False, highlight=False, soft_wrap=True)
-        table = Table(title=f"jaxface bench{' --quick' if quick else ''}: {len(runs)} benchmark(s) in {folder}")
-        for col, just in (("benchmark", "left"), ("status", "left"), ("seconds", "right"),
-                          ("mode", "left"), ("result / error", "left")):
+        table = Table(
+            title=f"jaxface bench{' --quick' if quick else ''}: {len(runs)} benchmark(s) in {folder}"
+        )
+        for col, just in (
+            ("benchmark", "left"),
+            ("status", "left"),
+            ("seconds", "right"),
+            ("mode", "left"),
+            ("result / error", "left"),
+        ):
             table.add_column(col, justify=just)
         for r in runs:
             mode = "quick" if r["quick"] else ("full (no --quick)" if quick else "full")
@@ -225,15 +262,27 @@ def register(app: typer.Typer) -> None:
                 info = f"timed out after {timeout:g} s"
             else:
                 info = f"exit {r['returncode']}: {_last_error_line(r['output'])}"
-            table.add_row(r["name"].removeprefix("bench_"), r["status"], f"{r['seconds']:.1f}", mode, info)
+            table.add_row(
+                r["name"].removeprefix("bench_"), r["status"], f"{r['seconds']:.1f}", mode, info
+            )
         console.print(table)
         if json_out is not None:
             json_out.parent.mkdir(parents=True, exist_ok=True)
-            json_out.write_text(json.dumps(
-                dict(folder=str(folder), quick=quick,
-                     runs=[{k: v for k, v in r.items() if k != "output"} for r in runs]), indent=1))
+            json_out.write_text(
+                json.dumps(
+                    dict(
+                        folder=str(folder),
+                        quick=quick,
+                        runs=[{k: v for k, v in r.items() if k != "output"} for r in runs],
+                    ),
+                    indent=1,
+                )
+            )
         failed = [r["name"] for r in runs if r["status"] != "ok"]
         if failed:
-            console.print(f"[bold red]error:[/] {len(failed)} benchmark(s) did not succeed: "
-                          f"{', '.join(failed)}", markup=True)
+            console.print(
+                f"[bold red]error:[/] {len(failed)} benchmark(s) did not succeed: "
+                f"{', '.join(failed)}",
+                markup=True,
+            )
             raise typer.Exit(EXIT_ERROR)

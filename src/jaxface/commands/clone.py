@@ -21,7 +21,7 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
-from typing import List, Optional
+from typing import List
 
 import numpy as np
 import typer
@@ -33,7 +33,9 @@ __all__ = ["register", "load_face", "collect_targets"]
 _MESHES = (".ply", ".obj")
 
 
-def load_face(path: Path, units: str, landmarks: Path | None, what: str, *, allow_scan: bool = False):
+def load_face(
+    path: Path, units: str, landmarks: Path | None, what: str, *, allow_scan: bool = False
+):
     """A face mesh (mm) and its landmarks (mm) from files.
 
     Args:
@@ -62,14 +64,18 @@ def load_face(path: Path, units: str, landmarks: Path | None, what: str, *, allo
         mesh = load_mesh(path, units=units, validate=False)
     else:
         allowed = ".ply, .obj" + (" or .bnt" if allow_scan else "")
-        raise ScanFormatError(f"{what} {path}: unsupported format {ext or '(no suffix)'!r}; use {allowed}.")
+        raise ScanFormatError(
+            f"{what} {path}: unsupported format {ext or '(no suffix)'!r}; use {allowed}."
+        )
     lm_path = Path(landmarks) if landmarks is not None else path.with_suffix(".lm3")
     if not lm_path.is_file():
         if landmarks is not None:
             raise DataNotFoundError(f"{what} landmark file not found: {lm_path}")
         opt = "--source-landmarks" if what.startswith("source") else "--target-landmarks"
-        raise LandmarkError(f"the {what} {path} has no landmarks: {lm_path} does not exist. Give a "
-                            f".lm3 file with {opt} (Bosphorus labels, the same names on both faces).")
+        raise LandmarkError(
+            f"the {what} {path} has no landmarks: {lm_path} does not exist. Give a "
+            f".lm3 file with {opt} (Bosphorus labels, the same names on both faces)."
+        )
     lm = read_lm3(lm_path).transformed(scale=unit_scale(units))
     return mesh, lm
 
@@ -89,26 +95,34 @@ def collect_targets(items: list[Path], exclude: tuple[Path, ...] = ()) -> list[P
     for item in items:
         item = Path(item)
         if item.is_dir():
-            found = sorted(p for p in item.iterdir() if p.is_file() and p.suffix.lower() in _MESHES
-                           and p.resolve() not in skip)
+            found = sorted(
+                p
+                for p in item.iterdir()
+                if p.is_file() and p.suffix.lower() in _MESHES and p.resolve() not in skip
+            )
             if not found:
                 raise ScanFormatError(f"source-targets folder {item} holds no .ply or .obj mesh.")
             out += found
         elif item.is_file():
             if item.suffix.lower() not in _MESHES:
-                raise ScanFormatError(f"source target {item}: unsupported format {item.suffix!r}; use "
-                                      f".ply or .obj.")
+                raise ScanFormatError(
+                    f"source target {item}: unsupported format {item.suffix!r}; use .ply or .obj."
+                )
             if item.resolve() not in skip:
                 out.append(item)
         else:
             raise DataNotFoundError(f"source target not found: {item}")
     if not out:
-        raise ScanFormatError("no source morph targets given (the only mesh is the source neutral).")
+        raise ScanFormatError(
+            "no source morph targets given (the only mesh is the source neutral)."
+        )
     stems = [p.stem for p in out]
     dup = sorted({s for s in stems if stems.count(s) > 1})
     if dup:
-        raise ScanFormatError(f"several source targets share the name(s) {dup}; the outputs are named "
-                              f"after the input stems, so rename them.")
+        raise ScanFormatError(
+            f"several source targets share the name(s) {dup}; the outputs are named "
+            f"after the input stems, so rename them."
+        )
     return out
 
 
@@ -119,40 +133,73 @@ def register(app: typer.Typer) -> None:
     @app.command(epilog=_EPILOG)
     @handle_errors
     def clone(
-        source_neutral: Path = typer.Option(..., "--source-neutral", "-s",
-                                            help="Source neutral mesh (.ply/.obj)."),
+        source_neutral: Path = typer.Option(
+            ..., "--source-neutral", "-s", help="Source neutral mesh (.ply/.obj)."
+        ),
         source_targets: List[Path] = typer.Option(  # noqa: UP006
-            ..., "--source-targets", "-t", metavar="PATH",
+            ...,
+            "--source-targets",
+            "-t",
+            metavar="PATH",
             help="Source morph targets: a folder of .ply/.obj meshes or files (repeat the "
-            "option); same vertex order as the source neutral."),
-        target: Path = typer.Option(..., "--target", "-T",
-                                    help="Target neutral face (.ply/.obj, or a .bnt range scan)."),
-        out: Path = typer.Option(..., "--out", "-o", file_okay=False,
-                                 help="Output folder (created if missing)."),
-        source_landmarks: Optional[Path] = typer.Option(  # noqa: UP007
-            None, "--source-landmarks", help="Source .lm3 (default: beside the source neutral)."),
-        target_landmarks: Optional[Path] = typer.Option(  # noqa: UP007
-            None, "--target-landmarks", help="Target .lm3 (default: beside the target)."),
-        landmarks: Optional[str] = typer.Option(  # noqa: UP007
-            None, "--landmarks", help="Comma-separated landmark names to use as correspondences "
-            "(default: every name common to both .lm3 files; at least 4)."),
-        source_units: Units = typer.Option(Units.mm, "--source-units", help="Units of the source files."),
-        target_units: Units = typer.Option(Units.mm, "--target-units", help="Units of the target files."),
-        out_units: Units = typer.Option(Units.mm, "--out-units", help="Units of the written meshes."),
-        fmt: Optional[str] = typer.Option(  # noqa: UP007
-            None, "--format", help="Output mesh format: ply or obj (default: the target's, ply "
-            "for a .bnt target)."),
-        mode: str = typer.Option("displacement", "--mode",
-                                 help="displacement (default) or thesis (see jaxface.clone)."),
-        max_iterations: int = typer.Option(100, "--max-iterations", min=0,
-                                           help="Cap on correspondence-refinement iterations."),
-        contours: bool = typer.Option(True, "--contours/--no-contours",
-                                      help="Enrich the correspondences with eye/lip contours."),
-        ens0: Optional[float] = typer.Option(  # noqa: UP007
-            None, "--ens0", min=0.0, help="Target eye-nose separation in mm (default: from its "
-            "landmarks; needed when the eye corners or nose tip are not labelled)."),
-        move_tol: float = typer.Option(0.01, "--move-tol", min=0.0,
-                                       help="A source vertex moves if displaced more than this, mm."),
+            "option); same vertex order as the source neutral.",
+        ),
+        target: Path = typer.Option(
+            ..., "--target", "-T", help="Target neutral face (.ply/.obj, or a .bnt range scan)."
+        ),
+        out: Path = typer.Option(
+            ..., "--out", "-o", file_okay=False, help="Output folder (created if missing)."
+        ),
+        source_landmarks: Path | None = typer.Option(  # noqa: UP007
+            None, "--source-landmarks", help="Source .lm3 (default: beside the source neutral)."
+        ),
+        target_landmarks: Path | None = typer.Option(  # noqa: UP007
+            None, "--target-landmarks", help="Target .lm3 (default: beside the target)."
+        ),
+        landmarks: str | None = typer.Option(  # noqa: UP007
+            None,
+            "--landmarks",
+            help="Comma-separated landmark names to use as correspondences "
+            "(default: every name common to both .lm3 files; at least 4).",
+        ),
+        source_units: Units = typer.Option(
+            Units.mm, "--source-units", help="Units of the source files."
+        ),
+        target_units: Units = typer.Option(
+            Units.mm, "--target-units", help="Units of the target files."
+        ),
+        out_units: Units = typer.Option(
+            Units.mm, "--out-units", help="Units of the written meshes."
+        ),
+        fmt: str | None = typer.Option(  # noqa: UP007
+            None,
+            "--format",
+            help="Output mesh format: ply or obj (default: the target's, ply for a .bnt target).",
+        ),
+        mode: str = typer.Option(
+            "displacement", "--mode", help="displacement (default) or thesis (see jaxface.clone)."
+        ),
+        max_iterations: int = typer.Option(
+            100, "--max-iterations", min=0, help="Cap on correspondence-refinement iterations."
+        ),
+        contours: bool = typer.Option(
+            True,
+            "--contours/--no-contours",
+            help="Enrich the correspondences with eye/lip contours.",
+        ),
+        ens0: float | None = typer.Option(  # noqa: UP007
+            None,
+            "--ens0",
+            min=0.0,
+            help="Target eye-nose separation in mm (default: from its "
+            "landmarks; needed when the eye corners or nose tip are not labelled).",
+        ),
+        move_tol: float = typer.Option(
+            0.01,
+            "--move-tol",
+            min=0.0,
+            help="A source vertex moves if displaced more than this, mm.",
+        ),
         quiet: bool = typer.Option(False, "--quiet", "-q", help="Only print errors."),
     ):
         """Clone a source face's morph targets (expressions) onto a target face (facial
@@ -168,14 +215,22 @@ def register(app: typer.Typer) -> None:
           jaxface clone -s a.ply -t smile.ply -t blink.ply -T scan.bnt -o out --no-contours
           jaxface clone -s a.obj -t shapes/ -T b.obj --source-units m --target-units m --out-units m -o out
         """
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+        from rich.progress import (
+            BarColumn,
+            MofNCompleteColumn,
+            Progress,
+            TextColumn,
+            TimeElapsedColumn,
+        )
 
         from .. import clone as cl
         from ..errors import LandmarkError, MeshError, ScanFormatError
         from ..mesh import load_mesh, save_mesh, unit_scale
 
         if mode not in ("displacement", "thesis"):
-            raise MeshError(f"--mode {mode!r}: use 'displacement' or 'thesis'.", problem="bad_arguments")
+            raise MeshError(
+                f"--mode {mode!r}: use 'displacement' or 'thesis'.", problem="bad_arguments"
+            )
         if fmt is None:
             fmt = target.suffix.lower().lstrip(".") if target.suffix.lower() in _MESHES else "ply"
         fmt = fmt.lower().lstrip(".")
@@ -186,22 +241,33 @@ def register(app: typer.Typer) -> None:
         with status_steps("jaxface clone", quiet=quiet) as step:
             step("reading the source and target faces")
             src, slm = load_face(source_neutral, s_units, source_landmarks, "source neutral")
-            tgt, tlm = load_face(target, target_units.value, target_landmarks, "target", allow_scan=True)
+            tgt, tlm = load_face(
+                target, target_units.value, target_landmarks, "target", allow_scan=True
+            )
             if landmarks:
                 names = [n.strip() for n in landmarks.split(",") if n.strip()]
                 for lm, who in ((slm, "source"), (tlm, "target")):
                     miss = lm.missing(names)
                     if miss:
-                        raise LandmarkError(f"--landmarks: {len(miss)} name(s) missing from the {who} "
-                                            f"landmarks: {list(miss)}. The {who} has {list(lm.names)}.",
-                                            missing=miss)
+                        raise LandmarkError(
+                            f"--landmarks: {len(miss)} name(s) missing from the {who} "
+                            f"landmarks: {list(miss)}. The {who} has {list(lm.names)}.",
+                            missing=miss,
+                        )
                 slm, tlm = slm.require(names), tlm.require(names)
             files = collect_targets(source_targets, exclude=(source_neutral,))
         deltas = np.zeros((len(files), src.n_vertices, 3))
+
         def new_progress():
-            return Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                            TextColumn("{task.fields[item]}"), TimeElapsedColumn(), console=console,
-                            disable=quiet)
+            return Progress(
+                TextColumn("[bold]{task.description}"),
+                BarColumn(),
+                MofNCompleteColumn(),
+                TextColumn("{task.fields[item]}"),
+                TimeElapsedColumn(),
+                console=console,
+                disable=quiet,
+            )
 
         with new_progress() as progress:
             task = progress.add_task("reading source targets", total=len(files), item="")
@@ -209,28 +275,42 @@ def register(app: typer.Typer) -> None:
                 progress.update(task, item=f.name)
                 m = load_mesh(f, units=s_units, validate=False, check_size=False)
                 if m.n_vertices != src.n_vertices:
-                    raise MeshError(f"source target {f} has {m.n_vertices} vertices but the source "
-                                    f"neutral {source_neutral} has {src.n_vertices}; morph targets "
-                                    f"must share the neutral's vertices (same count and order).",
-                                    problem="shape")
+                    raise MeshError(
+                        f"source target {f} has {m.n_vertices} vertices but the source "
+                        f"neutral {source_neutral} has {src.n_vertices}; morph targets "
+                        f"must share the neutral's vertices (same count and order).",
+                        problem="shape",
+                    )
                 deltas[j] = m.vertices - src.vertices
                 progress.advance(task)
         bad = np.flatnonzero(~np.isfinite(deltas).all(axis=(1, 2)))
         if bad.size:
-            raise MeshError(f"source target(s) {[files[i].name for i in bad]} hold NaN/inf coordinates.",
-                            problem="nonfinite")
+            raise MeshError(
+                f"source target(s) {[files[i].name for i in bad]} hold NaN/inf coordinates.",
+                problem="nonfinite",
+            )
         moving = np.linalg.norm(deltas, axis=2) > move_tol
         with status_steps("jaxface clone", quiet=quiet) as step:
-            step(f"fitting the source into the target ({len(slm.names)} source landmarks, "
-                 f"{src.n_vertices} -> {tgt.n_vertices} vertices)")
+            step(
+                f"fitting the source into the target ({len(slm.names)} source landmarks, "
+                f"{src.n_vertices} -> {tgt.n_vertices} vertices)"
+            )
             t0 = time.perf_counter()
-            fit = cl.fit_source_to_target(src, tgt, slm, tlm, movable=moving.any(axis=0),
-                                          use_contours=contours, max_iterations=max_iterations,
-                                          ens0=ens0)
+            fit = cl.fit_source_to_target(
+                src,
+                tgt,
+                slm,
+                tlm,
+                movable=moving.any(axis=0),
+                use_contours=contours,
+                max_iterations=max_iterations,
+                ens0=ens0,
+            )
             t1 = time.perf_counter()
             step("mapping the target onto the deformed source")
-            mapping = cl.map_onto_surface(tgt.vertices, tgt.vertex_normals, fit.ray_length,
-                                          fit.deformed, src.triangles)
+            mapping = cl.map_onto_surface(
+                tgt.vertices, tgt.vertex_normals, fit.ray_length, fit.deformed, src.triangles
+            )
             t2 = time.perf_counter()
         out.mkdir(parents=True, exist_ok=True)
         stats = []
@@ -238,29 +318,57 @@ def register(app: typer.Typer) -> None:
             task = progress.add_task("cloning targets", total=len(files), item="")
             for j, f in enumerate(files):
                 progress.update(task, item=f.stem)
-                pos = cl.apply_clone(fit, mapping, src.triangles, tgt.vertices, deltas[j:j + 1],
-                                     moving[j:j + 1], mode=mode)[0]
+                pos = cl.apply_clone(
+                    fit,
+                    mapping,
+                    src.triangles,
+                    tgt.vertices,
+                    deltas[j : j + 1],
+                    moving[j : j + 1],
+                    mode=mode,
+                )[0]
                 path = out / f"{f.stem}.{fmt}"
                 save_mesh(path, pos, tgt.triangles, units=out_units.value)
                 d = np.linalg.norm(pos - tgt.vertices, axis=1)
                 ds = np.linalg.norm(deltas[j], axis=1)
-                stats.append(dict(name=f.stem, file=str(path), source_moving_vertices=int(moving[j].sum()),
-                                  source_max_mm=float(ds.max()), max_mm=float(d.max()),
-                                  mean_moving_mm=float(d[d > move_tol].mean()) if (d > move_tol).any() else 0.0,
-                                  moving_vertices=int((d > move_tol).sum())))
+                stats.append(
+                    dict(
+                        name=f.stem,
+                        file=str(path),
+                        source_moving_vertices=int(moving[j].sum()),
+                        source_max_mm=float(ds.max()),
+                        max_mm=float(d.max()),
+                        mean_moving_mm=float(d[d > move_tol].mean())
+                        if (d > move_tol).any()
+                        else 0.0,
+                        moving_vertices=int((d > move_tol).sum()),
+                    )
+                )
                 progress.advance(task)
         t3 = time.perf_counter()
         report = dict(
-            source_neutral=str(source_neutral), target=str(target), units_written=out_units.value,
-            source_vertices=src.n_vertices, target_vertices=tgt.n_vertices, mode=mode,
-            landmarks=list(fit.landmark_names), ens0_mm=fit.ens0, ray_length_mm=fit.ray_length,
-            pairs=dict(landmark=fit.n_landmark_pairs, contour=fit.n_contour_pairs,
-                       refined=fit.n_refined_pairs),
-            contours_used=list(fit.contours_used), contours_skipped=dict(fit.contours_skipped),
-            iterations=fit.iterations, converged=bool(fit.converged),
+            source_neutral=str(source_neutral),
+            target=str(target),
+            units_written=out_units.value,
+            source_vertices=src.n_vertices,
+            target_vertices=tgt.n_vertices,
+            mode=mode,
+            landmarks=list(fit.landmark_names),
+            ens0_mm=fit.ens0,
+            ray_length_mm=fit.ray_length,
+            pairs=dict(
+                landmark=fit.n_landmark_pairs,
+                contour=fit.n_contour_pairs,
+                refined=fit.n_refined_pairs,
+            ),
+            contours_used=list(fit.contours_used),
+            contours_skipped=dict(fit.contours_skipped),
+            iterations=fit.iterations,
+            converged=bool(fit.converged),
             mapped_by_ray=float(np.mean(mapping.by_ray)),
-            seconds=dict(fit=t1 - t0, mapping=t2 - t1, cloning_and_writing=t3 - t2,
-                         total=t3 - t_start),
+            seconds=dict(
+                fit=t1 - t0, mapping=t2 - t1, cloning_and_writing=t3 - t2, total=t3 - t_start
+            ),
             targets=stats,
         )
         (out / "clone.json").write_text(json.dumps(report, indent=1, default=float))
@@ -269,17 +377,28 @@ def register(app: typer.Typer) -> None:
         from rich.table import Table
 
         table = Table(title=f"jaxface clone: {len(files)} morph targets -> {out}")
-        for col, just in (("target", "left"), ("source max (mm)", "right"), ("clone max (mm)", "right"),
-                          ("moving vertices", "right"), ("file", "left")):
+        for col, just in (
+            ("target", "left"),
+            ("source max (mm)", "right"),
+            ("clone max (mm)", "right"),
+            ("moving vertices", "right"),
+            ("file", "left"),
+        ):
             table.add_column(col, justify=just)
         scale = unit_scale(out_units.value)
         for s in stats:
-            table.add_row(s["name"], f"{s['source_max_mm']:.2f}", f"{s['max_mm']:.2f}",
-                          str(s["moving_vertices"]), Path(s["file"]).name)
+            table.add_row(
+                s["name"],
+                f"{s['source_max_mm']:.2f}",
+                f"{s['max_mm']:.2f}",
+                str(s["moving_vertices"]),
+                Path(s["file"]).name,
+            )
         console.print(table)
         console.print(
             f"correspondences: {fit.n_landmark_pairs} landmarks + {fit.n_contour_pairs} contour + "
             f"{fit.n_refined_pairs} refined pairs; {fit.iterations} refinement iterations"
             f"{' (converged)' if fit.converged else ' (stopped at --max-iterations)'}; "
             f"fit {t1 - t0:.2f} s, total {t3 - t_start:.2f} s. Meshes in {out_units.value}"
-            f"{'' if scale == 1.0 else ' (statistics in mm)'}; details in {out / 'clone.json'}.")
+            f"{'' if scale == 1.0 else ' (statistics in mm)'}; details in {out / 'clone.json'}."
+        )

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Optional
 
 import numpy as np
 import typer
@@ -36,8 +35,9 @@ def _kind(path: Path, what: str) -> str:
         return "mesh"
     if ext in SCAN_SUFFIXES:
         return "bnt"
-    raise ScanFormatError(f"{path}: unsupported {what} format {ext or '(no suffix)'!r}; use .bnt, .ply "
-                          f"or .obj.")
+    raise ScanFormatError(
+        f"{path}: unsupported {what} format {ext or '(no suffix)'!r}; use .bnt, .ply or .obj."
+    )
 
 
 def _parse_bounds(text: str | None):
@@ -50,8 +50,10 @@ def _parse_bounds(text: str | None):
     except ValueError:
         vals = []
     if len(vals) != 4 or not np.all(np.isfinite(vals)) or vals[2] <= vals[0] or vals[3] <= vals[1]:
-        raise ScanFormatError(f"--bounds {text!r}: give four numbers XMIN,YMIN,XMAX,YMAX in the input "
-                              f"units with XMAX > XMIN and YMAX > YMIN, e.g. --bounds=-80,-110,80,90.")
+        raise ScanFormatError(
+            f"--bounds {text!r}: give four numbers XMIN,YMIN,XMAX,YMAX in the input "
+            f"units with XMAX > XMIN and YMAX > YMIN, e.g. --bounds=-80,-110,80,90."
+        )
     return np.array(vals).reshape(2, 2)
 
 
@@ -62,10 +64,21 @@ def _lm3_beside(path: Path) -> Path | None:
     return next((c for c in cands if c.is_file()), None)
 
 
-def convert_file(src: Path, dst: Path, *, in_units: str = "mm", out_units: str = "mm",
-                 resolution: float | None = None, bounds=None, max_angle_deg: float | None = None,
-                 noise_mm: float = 0.0, seed: int = 0, landmarks: Path | None | bool = None,
-                 max_edge_factor: float | None = None, check_size: bool = True) -> dict:
+def convert_file(
+    src: Path,
+    dst: Path,
+    *,
+    in_units: str = "mm",
+    out_units: str = "mm",
+    resolution: float | None = None,
+    bounds=None,
+    max_angle_deg: float | None = None,
+    noise_mm: float = 0.0,
+    seed: int = 0,
+    landmarks: Path | None | bool = None,
+    max_edge_factor: float | None = None,
+    check_size: bool = True,
+) -> dict:
     """Convert one file; the library behind ``jaxface convert``.
 
     Args:
@@ -99,8 +112,15 @@ def convert_file(src: Path, dst: Path, *, in_units: str = "mm", out_units: str =
         raise ScanFormatError(f"output {dst} is the input file; choose another output path.")
     if max_edge_factor is None:
         max_edge_factor = DEFAULT_MAX_EDGE_FACTOR
-    info: dict = {"input": str(src), "output": str(dst), "from": k_in, "to": k_out,
-                  "in_units": in_units, "out_units": out_units, "notes": []}
+    info: dict = {
+        "input": str(src),
+        "output": str(dst),
+        "from": k_in,
+        "to": k_out,
+        "in_units": in_units,
+        "out_units": out_units,
+        "notes": [],
+    }
 
     lm_path = None
     if landmarks is None:
@@ -114,8 +134,10 @@ def convert_file(src: Path, dst: Path, *, in_units: str = "mm", out_units: str =
     lm_out = dst.with_suffix(".lm3")
     shared_lm3 = lm_path is not None and lm_out.resolve() == lm_path.resolve()
     if shared_lm3 and s_in != s_out:
-        raise ScanFormatError(f"the output landmarks {lm_out} would overwrite the input landmarks "
-                              f"{lm_path} in other units; write the output to another folder or stem.")
+        raise ScanFormatError(
+            f"the output landmarks {lm_out} would overwrite the input landmarks "
+            f"{lm_path} in other units; write the output to another folder or stem."
+        )
     dst.parent.mkdir(parents=True, exist_ok=True)
     if k_in == "bnt":
         scan = read_bnt(src, units=in_units, check_size=check_size)
@@ -137,8 +159,15 @@ def convert_file(src: Path, dst: Path, *, in_units: str = "mm", out_units: str =
 
             res = DEFAULT_RESOLUTION_MM if resolution is None else float(resolution)
             b = None if bounds is None else np.asarray(bounds, dtype=np.float64) * s_in
-            scan = scan_mesh(mesh, res, bounds=b, max_angle_deg=max_angle_deg, noise_mm=noise_mm,
-                             seed=seed, image_name=dst.stem + ".png")
+            scan = scan_mesh(
+                mesh,
+                res,
+                bounds=b,
+                max_angle_deg=max_angle_deg,
+                noise_mm=noise_mm,
+                seed=seed,
+                image_name=dst.stem + ".png",
+            )
             write_bnt(dst, dataclasses.replace(scan, points=scan.points / s_out))
             info.update(grid=list(scan.shape), points=scan.n_points, resolution_mm=res)
     if resolution is not None and not (k_in == "mesh" and k_out == "bnt"):
@@ -148,8 +177,11 @@ def convert_file(src: Path, dst: Path, *, in_units: str = "mm", out_units: str =
         info["files"].append(f"{lm_out} (kept: the input's landmarks, same units)")
         info["landmarks"] = len(lm)
     elif lm is not None:
-        write_lm3(lm_out, lm.transformed(scale=1.0 / s_out),
-                  comment=f"landmarks converted by jaxface from {lm_path.name} ({out_units})")
+        write_lm3(
+            lm_out,
+            lm.transformed(scale=1.0 / s_out),
+            comment=f"landmarks converted by jaxface from {lm_path.name} ({out_units})",
+        )
         info["files"].append(str(lm_out))
         info["landmarks"] = len(lm)
     return info
@@ -163,33 +195,62 @@ def register(app: typer.Typer) -> None:
     @handle_errors
     def convert(
         src: Path = typer.Argument(..., metavar="IN", help="Input file: .bnt, .ply or .obj."),
-        dst: Path = typer.Argument(..., metavar="OUT", help="Output file: .bnt, .ply or .obj "
-                                   "(folders are created)."),
-        in_units: Units = typer.Option(Units.mm, "--in-units", help="Units of IN's coordinates "
-                                       "(and of its .lm3 and of --bounds)."),
-        out_units: Units = typer.Option(Units.mm, "--out-units", help="Units to write OUT (and its .lm3) in."),
-        resolution: Optional[float] = typer.Option(  # noqa: UP007
-            None, "--resolution", "-r", min=1e-3,
-            help="Mesh -> .bnt: grid spacing in mm (default 0.5)."),
-        bounds: Optional[str] = typer.Option(  # noqa: UP007
-            None, "--bounds", help="Mesh -> .bnt: scanned window XMIN,YMIN,XMAX,YMAX in the input "
-            "units (default the mesh's x/y extent). Write it as --bounds=-80,-110,80,90."),
-        max_angle: Optional[float] = typer.Option(  # noqa: UP007
-            None, "--max-angle", min=0.0, max=90.0,
+        dst: Path = typer.Argument(
+            ..., metavar="OUT", help="Output file: .bnt, .ply or .obj (folders are created)."
+        ),
+        in_units: Units = typer.Option(
+            Units.mm,
+            "--in-units",
+            help="Units of IN's coordinates (and of its .lm3 and of --bounds).",
+        ),
+        out_units: Units = typer.Option(
+            Units.mm, "--out-units", help="Units to write OUT (and its .lm3) in."
+        ),
+        resolution: float | None = typer.Option(  # noqa: UP007
+            None,
+            "--resolution",
+            "-r",
+            min=1e-3,
+            help="Mesh -> .bnt: grid spacing in mm (default 0.5).",
+        ),
+        bounds: str | None = typer.Option(  # noqa: UP007
+            None,
+            "--bounds",
+            help="Mesh -> .bnt: scanned window XMIN,YMIN,XMAX,YMAX in the input "
+            "units (default the mesh's x/y extent). Write it as --bounds=-80,-110,80,90.",
+        ),
+        max_angle: float | None = typer.Option(  # noqa: UP007
+            None,
+            "--max-angle",
+            min=0.0,
+            max=90.0,
             help="Mesh -> .bnt: drop samples on surfaces steeper than this (degrees from the "
-            "view axis), like a real scanner."),
-        noise: float = typer.Option(0.0, "--noise", min=0.0, help="Mesh -> .bnt: Gaussian depth noise, mm."),
+            "view axis), like a real scanner.",
+        ),
+        noise: float = typer.Option(
+            0.0, "--noise", min=0.0, help="Mesh -> .bnt: Gaussian depth noise, mm."
+        ),
         seed: int = typer.Option(0, "--seed", help="Seed of the depth noise."),
-        landmarks: Optional[Path] = typer.Option(  # noqa: UP007
-            None, "--landmarks", "-l", help=".lm3 landmarks of IN (default: IN's stem + .lm3 if "
-            "it exists); written beside OUT."),
+        landmarks: Path | None = typer.Option(  # noqa: UP007
+            None,
+            "--landmarks",
+            "-l",
+            help=".lm3 landmarks of IN (default: IN's stem + .lm3 if "
+            "it exists); written beside OUT.",
+        ),
         no_landmarks: bool = typer.Option(False, "--no-landmarks", help="Do not carry landmarks."),
-        max_edge: Optional[float] = typer.Option(  # noqa: UP007
-            None, "--max-edge", min=0.0,
+        max_edge: float | None = typer.Option(  # noqa: UP007
+            None,
+            "--max-edge",
+            min=0.0,
             help=".bnt -> mesh: drop triangles with an edge longer than this many grid steps "
-            "(default 6; depth discontinuities)."),
-        check_size: bool = typer.Option(True, "--check-size/--no-check-size",
-                                        help="Check that IN is face-sized after unit conversion."),
+            "(default 6; depth discontinuities).",
+        ),
+        check_size: bool = typer.Option(
+            True,
+            "--check-size/--no-check-size",
+            help="Check that IN is face-sized after unit conversion.",
+        ),
         quiet: bool = typer.Option(False, "--quiet", "-q", help="Only print errors."),
     ):
         """Convert scans and meshes: .bnt -> PLY/OBJ (meshing the range grid), PLY/OBJ -> .bnt
@@ -211,14 +272,25 @@ def register(app: typer.Typer) -> None:
         with status_steps("jaxface convert", quiet=quiet) as step:
             step(f"converting {src.name} -> {dst.name}")
             try:
-                info = convert_file(src, dst, in_units=in_units.value, out_units=out_units.value,
-                                    resolution=resolution, bounds=b, max_angle_deg=max_angle,
-                                    noise_mm=noise, seed=seed,
-                                    landmarks=False if no_landmarks else landmarks,
-                                    max_edge_factor=max_edge, check_size=check_size)
+                info = convert_file(
+                    src,
+                    dst,
+                    in_units=in_units.value,
+                    out_units=out_units.value,
+                    resolution=resolution,
+                    bounds=b,
+                    max_angle_deg=max_angle,
+                    noise_mm=noise,
+                    seed=seed,
+                    landmarks=False if no_landmarks else landmarks,
+                    max_edge_factor=max_edge,
+                    check_size=check_size,
+                )
             except UnitsError as e:
-                raise UnitsError(f"{e} On the command line: set --in-units to the file's unit, "
-                                 f"or pass --no-check-size.") from e
+                raise UnitsError(
+                    f"{e} On the command line: set --in-units to the file's unit, "
+                    f"or pass --no-check-size."
+                ) from e
         if quiet:
             return
         from rich.table import Table
@@ -226,10 +298,16 @@ def register(app: typer.Typer) -> None:
         table = Table(title=f"jaxface convert: {src} -> {dst}")
         table.add_column("item")
         table.add_column("value")
-        table.add_row("conversion", f"{info['from']} ({info['in_units']}) -> {info['to']} ({info['out_units']})")
+        table.add_row(
+            "conversion",
+            f"{info['from']} ({info['in_units']}) -> {info['to']} ({info['out_units']})",
+        )
         if "grid" in info:
-            table.add_row("range grid", f"{info['grid'][0]} rows x {info['grid'][1]} columns, "
-                          f"{info['points']} valid points")
+            table.add_row(
+                "range grid",
+                f"{info['grid'][0]} rows x {info['grid'][1]} columns, "
+                f"{info['points']} valid points",
+            )
         if "resolution_mm" in info:
             table.add_row("grid spacing", f"{info['resolution_mm']:g} mm")
         if "vertices" in info:

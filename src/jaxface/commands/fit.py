@@ -24,14 +24,14 @@ import time
 import warnings
 from enum import Enum
 from pathlib import Path
-from typing import List, Optional
+from typing import List
 
 import typer
 
 __all__ = ["register", "run_fit"]
 
 
-def _load(path: Path, landmarks: Optional[Path], what: str):
+def _load(path: Path, landmarks: Path | None, what: str):
     """Load a scan with its landmarks (explicit file, or the .lm3 beside it)."""
     from ..errors import DataNotFoundError, LandmarkError
     from ..io import load_scan
@@ -51,7 +51,7 @@ def _load(path: Path, landmarks: Optional[Path], what: str):
     return scan
 
 
-def _template(template: Optional[Path], template_landmarks: Optional[Path]):
+def _template(template: Path | None, template_landmarks: Path | None):
     from ..errors import DataNotFoundError, LandmarkError
     from ..landmarks import read_lm3
     from ..mesh import load_mesh
@@ -71,11 +71,24 @@ def _template(template: Optional[Path], template_landmarks: Optional[Path]):
     return load_mesh(template, validate=False), read_lm3(lm)
 
 
-def run_fit(neutral: Path, scans: list[Path], out: Path, *, neutral_landmarks: Path | None = None,
-            scan_landmarks: list[Path] | None = None, template: Path | None = None,
-            template_landmarks: Path | None = None, backend: str = "pbd", pictures: bool = False,
-            options=None, subject_options=None, batch_size: int | None = None,
-            progress=None, on_step=None, on_written=None) -> list:
+def run_fit(
+    neutral: Path,
+    scans: list[Path],
+    out: Path,
+    *,
+    neutral_landmarks: Path | None = None,
+    scan_landmarks: list[Path] | None = None,
+    template: Path | None = None,
+    template_landmarks: Path | None = None,
+    backend: str = "pbd",
+    pictures: bool = False,
+    options=None,
+    subject_options=None,
+    batch_size: int | None = None,
+    progress=None,
+    on_step=None,
+    on_written=None,
+) -> list:
     """The library behind ``jaxface fit``: fit ``scans`` of the subject of ``neutral`` and
     write the results into ``out``. Returns the :class:`~jaxface.fit.pipeline.ExpressionFit`
     list (in the order of ``scans``).
@@ -102,11 +115,15 @@ def run_fit(neutral: Path, scans: list[Path], out: Path, *, neutral_landmarks: P
     step = on_step or (lambda s: None)
     step("reading the scans")
     n_scan = _load(neutral, neutral_landmarks, "neutral scan")
-    loaded = [_load(p, scan_landmarks[i] if scan_landmarks else None, "scan") for i, p in enumerate(scans)]
+    loaded = [
+        _load(p, scan_landmarks[i] if scan_landmarks else None, "scan") for i, p in enumerate(scans)
+    ]
     stems = [_stem(s) for s in loaded]
     dup = sorted({s for s in stems if stems.count(s) > 1})
     if dup:
-        raise FitError(f"several --scan files share the stem(s) {dup}; their outputs would overwrite each other.")
+        raise FitError(
+            f"several --scan files share the stem(s) {dup}; their outputs would overwrite each other."
+        )
     tmesh, tlm = _template(template, template_landmarks)
     sopt = subject_options or SubjectOptions(backend=backend)
     if sopt.backend != backend:
@@ -114,11 +131,17 @@ def run_fit(neutral: Path, scans: list[Path], out: Path, *, neutral_landmarks: P
 
         sopt = replace(sopt, backend=backend)
     step("building the subject's rig (registration, skull, muscles, reduced model)")
-    subject = prepare_subject(n_scan, template=tmesh, template_landmarks=tlm, options=sopt, progress=progress)
+    subject = prepare_subject(
+        n_scan, template=tmesh, template_landmarks=tlm, options=sopt, progress=progress
+    )
     out.mkdir(parents=True, exist_ok=True)
     step(f"fitting {len(loaded)} scan(s)")
     results = fit_expressions(
-        subject, loaded, options=options or FitOptions(), progress=progress, batch_size=batch_size,
+        subject,
+        loaded,
+        options=options or FitOptions(),
+        progress=progress,
+        batch_size=batch_size,
         on_result=lambda r: _write(r, out, pictures, on_written),
     )
     return results
@@ -144,56 +167,103 @@ def register(app: typer.Typer) -> None:
     @app.command(epilog=_EPILOG)
     @handle_errors
     def fit(
-        neutral: Path = typer.Option(..., "--neutral", "-n", help="The subject's neutral scan (.bnt, .ply, .obj)."),
+        neutral: Path = typer.Option(
+            ..., "--neutral", "-n", help="The subject's neutral scan (.bnt, .ply, .obj)."
+        ),
         scan: List[Path] = typer.Option(  # noqa: UP006
-            ..., "--scan", "-s", help="Expression scan(s) of the same subject; repeat for a batch."),
-        out: Path = typer.Option(..., "--out", "-o", file_okay=False, help="Output folder (created if missing)."),
-        neutral_landmarks: Optional[Path] = typer.Option(  # noqa: UP007
-            None, "--neutral-landmarks", help="Neutral .lm3 (default: beside the neutral scan)."),
-        scan_landmarks: Optional[List[Path]] = typer.Option(  # noqa: UP006, UP007
-            None, "--scan-landmarks", help="Scan .lm3, one per --scan in the same order (default: beside "
-            "each scan)."),
-        template: Optional[Path] = typer.Option(  # noqa: UP007
-            None, "--template", help="Template skin to register (.ply/.obj, mm; default: the built-in head)."),
-        template_landmarks: Optional[Path] = typer.Option(  # noqa: UP007
-            None, "--template-landmarks", help="Landmarks of --template (.lm3; default: beside it)."),
+            ..., "--scan", "-s", help="Expression scan(s) of the same subject; repeat for a batch."
+        ),
+        out: Path = typer.Option(
+            ..., "--out", "-o", file_okay=False, help="Output folder (created if missing)."
+        ),
+        neutral_landmarks: Path | None = typer.Option(  # noqa: UP007
+            None, "--neutral-landmarks", help="Neutral .lm3 (default: beside the neutral scan)."
+        ),
+        scan_landmarks: List[Path] | None = typer.Option(  # noqa: UP006, UP007
+            None,
+            "--scan-landmarks",
+            help="Scan .lm3, one per --scan in the same order (default: beside each scan).",
+        ),
+        template: Path | None = typer.Option(  # noqa: UP007
+            None,
+            "--template",
+            help="Template skin to register (.ply/.obj, mm; default: the built-in head).",
+        ),
+        template_landmarks: Path | None = typer.Option(  # noqa: UP007
+            None, "--template-landmarks", help="Landmarks of --template (.lm3; default: beside it)."
+        ),
         backend: str = typer.Option("pbd", "--backend", help="Simulation backend: pbd or ltw."),
-        pictures: bool = typer.Option(False, "--pictures", help="Also write a before/after picture per scan."),
+        pictures: bool = typer.Option(
+            False, "--pictures", help="Also write a before/after picture per scan."
+        ),
         points: int = typer.Option(1000, "--points", min=100, help="Scan points per fit."),
         motion_fraction: float = typer.Option(
-            0.5, "--motion-fraction", min=0.0, max=1.0,
+            0.5,
+            "--motion-fraction",
+            min=0.0,
+            max=1.0,
             help="Share of the scan points drawn from where the expression moves the skin (farther "
-                 "than FitOptions.motion_threshold_mm, 0.3 mm, from the registered neutral); the rest "
-                 "evenly. 0 = all evenly."),
-        outer_iterations: int = typer.Option(6, "--outer-iterations", min=1,
-                                             help="Correspondence refreshes (one exact rig synthesis and one "
-                                                  "reverse pass through the rig each)."),
+            "than FitOptions.motion_threshold_mm, 0.3 mm, from the registered neutral); the rest "
+            "evenly. 0 = all evenly.",
+        ),
+        outer_iterations: int = typer.Option(
+            6,
+            "--outer-iterations",
+            min=1,
+            help="Correspondence refreshes (one exact rig synthesis and one "
+            "reverse pass through the rig each).",
+        ),
         extra_iterations: int = typer.Option(
-            6, "--extra-iterations", min=0,
+            6,
+            "--extra-iterations",
+            min=0,
             help="At most this many more outer iterations for a scan still converging: its cost still "
-                 "falls by more than 1 % per iteration while its activations or jaw still move (each "
-                 "scan stops on its own; one still converging after them is reported as "
-                 "outer_not_converged)."),
-        max_steps: int = typer.Option(40, "--max-steps", min=1, help="Levenberg-Marquardt steps per inner solve."),
-        exact_steps: int = typer.Option(0, "--exact-steps", min=0,
-                                        help="Final LM steps through the exact rig (slow: a rig Jacobian each)."),
+            "falls by more than 1 % per iteration while its activations or jaw still move (each "
+            "scan stops on its own; one still converging after them is reported as "
+            "outer_not_converged).",
+        ),
+        max_steps: int = typer.Option(
+            40, "--max-steps", min=1, help="Levenberg-Marquardt steps per inner solve."
+        ),
+        exact_steps: int = typer.Option(
+            0,
+            "--exact-steps",
+            min=0,
+            help="Final LM steps through the exact rig (slow: a rig Jacobian each).",
+        ),
         restart_iterations: int = typer.Option(
-            2, "--restart-iterations", min=0,
+            2,
+            "--restart-iterations",
+            min=0,
             help="Bound-flip restart: a fit with activations at 1 (see --restart-when) is fitted again "
-                 "for this many outer iterations with them back near 0; the lower cost wins (0 = off)."),
+            "for this many outer iterations with them back near 0; the lower cost wins (0 = off).",
+        ),
         restart_when: RestartWhen = typer.Option(
-            RestartWhen.unconverged, "--restart-when",
+            RestartWhen.unconverged,
+            "--restart-when",
             help="Which fits with activations at 1 restart: 'unconverged' (only those that did not "
-                 "converge, the trap's signature) or 'saturated' (all of them; slower)."),
+            "converge, the trap's signature) or 'saturated' (all of them; slower).",
+        ),
         au_sparse_weight: float = typer.Option(
-            0.02, "--au-sparse-weight", min=0.0,
+            0.02,
+            "--au-sparse-weight",
+            min=0.0,
             help="L1 weight of the sparse AU readout (au_sparse in the JSON: the fewest AUs that "
-                 "reproduce the fit's skin motion; mm^2 of mean squared motion per unit intensity; "
-                 "0 = plain least squares). It reads the fit and does not change it."),
-        levels: int = typer.Option(4, "--levels", min=1, help="Activation knots of the rig's reduced model."),
-        pitch_knots: int = typer.Option(12, "--pitch-knots", min=3, help="Jaw pitch knots of the reduced model."),
-        batch_size: Optional[int] = typer.Option(  # noqa: UP007
-            None, "--batch-size", min=1, help="Scans fitted together (one after the other on the CPU, one vmap on a GPU); default all."),
+            "reproduce the fit's skin motion; mm^2 of mean squared motion per unit intensity; "
+            "0 = plain least squares). It reads the fit and does not change it.",
+        ),
+        levels: int = typer.Option(
+            4, "--levels", min=1, help="Activation knots of the rig's reduced model."
+        ),
+        pitch_knots: int = typer.Option(
+            12, "--pitch-knots", min=3, help="Jaw pitch knots of the reduced model."
+        ),
+        batch_size: int | None = typer.Option(  # noqa: UP007
+            None,
+            "--batch-size",
+            min=1,
+            help="Scans fitted together (one after the other on the CPU, one vmap on a GPU); default all.",
+        ),
         quiet: bool = typer.Option(False, "--quiet", "-q", help="Only print errors."),
     ):
         """Fit muscle activations, jaw pose and a rigid correction to expression scans of one
@@ -209,7 +279,13 @@ def register(app: typer.Typer) -> None:
           jaxface fit -n N.ply --neutral-landmarks N.lm3 -s S.ply --scan-landmarks S.lm3 -o fits
         """
         import jax
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+        from rich.progress import (
+            BarColumn,
+            MofNCompleteColumn,
+            Progress,
+            TextColumn,
+            TimeElapsedColumn,
+        )
         from rich.table import Table
 
         # the fit runs in float64: Levenberg-Marquardt tolerances, second differences of the
@@ -219,16 +295,32 @@ def register(app: typer.Typer) -> None:
         from ..fit.pipeline import SubjectOptions
         from ..fit.solve import FitOptions
 
-        opts = FitOptions(n_points=points, motion_fraction=motion_fraction, outer_iterations=outer_iterations,
-                          extra_iterations=extra_iterations, max_steps=max_steps,
-                          exact_steps=exact_steps, restart_iterations=restart_iterations,
-                          restart_when=RestartWhen(restart_when).value, au_sparse_weight=au_sparse_weight)
+        opts = FitOptions(
+            n_points=points,
+            motion_fraction=motion_fraction,
+            outer_iterations=outer_iterations,
+            extra_iterations=extra_iterations,
+            max_steps=max_steps,
+            exact_steps=exact_steps,
+            restart_iterations=restart_iterations,
+            restart_when=RestartWhen(restart_when).value,
+            au_sparse_weight=au_sparse_weight,
+        )
         sopts = SubjectOptions(backend=backend, levels=levels, pitch_knots=pitch_knots)
         t0 = time.perf_counter()
-        prog = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                        TimeElapsedColumn(), TextColumn("{task.fields[info]}"), console=console,
-                        disable=quiet, transient=False)
-        n_fit = outer_iterations * ((len(scan) + (batch_size or len(scan)) - 1) // (batch_size or len(scan)))
+        prog = Progress(
+            TextColumn("[bold]{task.description}"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TimeElapsedColumn(),
+            TextColumn("{task.fields[info]}"),
+            console=console,
+            disable=quiet,
+            transient=False,
+        )
+        n_fit = outer_iterations * (
+            (len(scan) + (batch_size or len(scan)) - 1) // (batch_size or len(scan))
+        )
         with prog:
             t_main = prog.add_task("jaxface fit", total=4 + n_fit + len(scan), info="")
 
@@ -244,14 +336,28 @@ def register(app: typer.Typer) -> None:
             def done(r, files):
                 prog.update(t_main, advance=1, info=f"wrote {Path(files['json']).name}")
 
-            results = run_fit(neutral, list(scan), out, neutral_landmarks=neutral_landmarks,
-                              scan_landmarks=list(scan_landmarks) if scan_landmarks else None,
-                              template=template, template_landmarks=template_landmarks, backend=backend,
-                              pictures=pictures, options=opts, subject_options=sopts,
-                              batch_size=batch_size, progress=on_progress, on_step=on_step, on_written=done)
+            results = run_fit(
+                neutral,
+                list(scan),
+                out,
+                neutral_landmarks=neutral_landmarks,
+                scan_landmarks=list(scan_landmarks) if scan_landmarks else None,
+                template=template,
+                template_landmarks=template_landmarks,
+                backend=backend,
+                pictures=pictures,
+                options=opts,
+                subject_options=sopts,
+                batch_size=batch_size,
+                progress=on_progress,
+                on_step=on_step,
+                on_written=done,
+            )
         if quiet:
             return
-        table = Table(title=f"jaxface fit: {len(results)} scan(s) -> {out} ({time.perf_counter() - t0:.1f} s)")
+        table = Table(
+            title=f"jaxface fit: {len(results)} scan(s) -> {out} ({time.perf_counter() - t0:.1f} s)"
+        )
         table.add_column("scan", no_wrap=True)
         for col in ("status", "scan->fit mm", "B0 mm", "B1 mm", "pitch deg"):
             table.add_column(col, justify="right")
@@ -260,14 +366,28 @@ def register(app: typer.Typer) -> None:
         table.add_column("fewest AUs for the motion (sparse)")
         for r in results:
             aus = ", ".join(f"{k} {v:.2f}" for k, v in r.strongest_aus(3, bilateral_only=True))
-            vis = ", ".join(f"{k} {v:.2f}" for k, v in r.strongest_aus(3, bilateral_only=True, by="motion"))
-            spa = ", ".join(f"{k} {v:.2f}" for k, v in r.strongest_aus(3, bilateral_only=True, by="sparse"))
-            table.add_row(r.stem, r.status if r.status == "successful" else f"[yellow]{r.status}[/]",
-                          f"{r.metrics.scan_to_fit['all'].mean:.3f}",
-                          f"{r.baselines['B0'].scan_to_fit['all'].mean:.3f}",
-                          f"{r.baselines['B1'].scan_to_fit['all'].mean:.3f}", f"{r.jaw['pitch_deg']:.1f}", aus, vis, spa)
+            vis = ", ".join(
+                f"{k} {v:.2f}" for k, v in r.strongest_aus(3, bilateral_only=True, by="motion")
+            )
+            spa = ", ".join(
+                f"{k} {v:.2f}" for k, v in r.strongest_aus(3, bilateral_only=True, by="sparse")
+            )
+            table.add_row(
+                r.stem,
+                r.status if r.status == "successful" else f"[yellow]{r.status}[/]",
+                f"{r.metrics.scan_to_fit['all'].mean:.3f}",
+                f"{r.baselines['B0'].scan_to_fit['all'].mean:.3f}",
+                f"{r.baselines['B1'].scan_to_fit['all'].mean:.3f}",
+                f"{r.jaw['pitch_deg']:.1f}",
+                aus,
+                vis,
+                spa,
+            )
         console.print(table)
         bad = [r.stem for r in results if r.status != "successful"]
         if bad:
-            console.print(f"[yellow]warning:[/] the last inner solve did not meet its tolerance for {', '.join(bad)} "
-                          "(see solver.status / solver.outer_iterations in the JSON).", markup=True)
+            console.print(
+                f"[yellow]warning:[/] the last inner solve did not meet its tolerance for {', '.join(bad)} "
+                "(see solver.status / solver.outer_iterations in the JSON).",
+                markup=True,
+            )

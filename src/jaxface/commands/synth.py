@@ -23,7 +23,7 @@ import json
 import re
 import time
 from pathlib import Path
-from typing import List, Optional
+from typing import List
 
 import numpy as np
 import typer
@@ -48,20 +48,24 @@ def parse_muscles(specs, muscle_names) -> dict[str, float]:
         name, _, val = str(item).partition("=")
         name = name.strip()
         if name not in names:
-            raise RigError(f"--muscle {item!r}: unknown control {name!r}; the rig's controls are "
-                           f"{names}.")
+            raise RigError(
+                f"--muscle {item!r}: unknown control {name!r}; the rig's controls are {names}."
+            )
         try:
             v = float(val) if val.strip() else 1.0
         except ValueError:
-            raise RigError(f"--muscle {item!r}: the activation must be a number in [0, 1].") from None
+            raise RigError(
+                f"--muscle {item!r}: the activation must be a number in [0, 1]."
+            ) from None
         if not 0.0 <= v <= 1.0:
             raise RigError(f"--muscle {item!r}: the activation must be in [0, 1].")
         out[name] = v
     return out
 
 
-def synthesize_files(rig, expressions, out: Path, *, pictures: bool = True, out_units: str = "mm",
-                     progress=None) -> list[dict]:
+def synthesize_files(
+    rig, expressions, out: Path, *, pictures: bool = True, out_units: str = "mm", progress=None
+) -> list[dict]:
     """Synthesise ``expressions`` on ``rig`` and write the files described in the module doc.
 
     Args:
@@ -106,8 +110,11 @@ def synthesize_files(rig, expressions, out: Path, *, pictures: bool = True, out_
         save_mesh(out / f"{name}.ply", x, tris, units=out_units)
         write_lm3(out / f"{name}.lm3", Landmarks(names, lm * s))
         je = rig.jaw.clamp(jaw) if hasattr(rig.jaw, "clamp") else jaw
-        jd = {"pitch_deg": float(je.pitch_deg), "yaw_deg": float(je.yaw_deg),
-              "protrusion_mm": float(je.protrusion_mm)}
+        jd = {
+            "pitch_deg": float(je.pitch_deg),
+            "yaw_deg": float(je.yaw_deg),
+            "protrusion_mm": float(je.protrusion_mm),
+        }
         disp = np.linalg.norm(x - rest, axis=1)
         summary = {
             "name": name,
@@ -116,7 +123,9 @@ def synthesize_files(rig, expressions, out: Path, *, pictures: bool = True, out_
             "activations": {n: float(v) for n, v in zip(rig.muscle_names, np.asarray(a))},
             "jaw": jd,
             "cheek_puff": float(puff),
-            "au_intensities": au_intensities(np.asarray(a), rig.muscle_names, je, cheek_puff=float(puff)),
+            "au_intensities": au_intensities(
+                np.asarray(a), rig.muscle_names, je, cheek_puff=float(puff)
+            ),
             "displacement_mm": {"max": float(disp.max()), "mean": float(disp.mean())},
             "landmark_displacement_mm": {n: [float(v) for v in d] for n, d in zip(names, lm - lm0)},
             "synthesis_s": secs,
@@ -144,8 +153,12 @@ def _picture(path, rig, rest, x, title):
     bounds = np.stack([np.minimum(lo, hi), np.maximum(lo, hi)])
     tris = np.asarray(rig.triangles)
     fig, axs = plt.subplots(1, 4, figsize=(12, 3.3))
-    panels = [("neutral", rest, "front"), (title, x, "front"), ("neutral", rest, (30.0, 5.0)),
-              (title, x, (30.0, 5.0))]
+    panels = [
+        ("neutral", rest, "front"),
+        (title, x, "front"),
+        ("neutral", rest, (30.0, 5.0)),
+        (title, x, (30.0, 5.0)),
+    ]
     for ax, (t, v, view) in zip(axs, panels):
         img = rasterize([Layer(v, tris)], view=view, width=360, height=360, bounds=bounds).image
         ax.imshow(img)
@@ -165,9 +178,9 @@ def _safe_name(s: str) -> str:
 #: move the result) on the ICT face, for the six emotions, AU26 and the benchmark smile
 #: (``benchmarks/bench_synth.py --sweeps converged,reference --expressions``, 2-core CPU):
 SWEEP_PRESETS = {
-    "fast": (32, 8, 0.0),           # the default: 47 ms, up to 1.6 mm to go
-    "converged": (32, 56, 0.995),   # 172 ms (3.7x the default), at most 0.022 mm to go
-    "reference": (48, 96, 0.99),    # about twice "converged", under 0.001 mm to go
+    "fast": (32, 8, 0.0),  # the default: 47 ms, up to 1.6 mm to go
+    "converged": (32, 56, 0.995),  # 172 ms (3.7x the default), at most 0.022 mm to go
+    "reference": (48, 96, 0.99),  # about twice "converged", under 0.001 mm to go
 }
 
 
@@ -189,8 +202,10 @@ def parse_sweeps(text: str) -> tuple[int, int, float]:
     if key in SWEEP_PRESETS:
         return SWEEP_PRESETS[key]
     parts = str(text).replace(" ", "").split("/")
-    hint = ("give MUSCLE/SKIN sweep counts, optionally /RHO for the skin's Chebyshev acceleration, "
-            f"e.g. 384/16 or 384/32/0.97, or one of {', '.join(SWEEP_PRESETS)}.")
+    hint = (
+        "give MUSCLE/SKIN sweep counts, optionally /RHO for the skin's Chebyshev acceleration, "
+        f"e.g. 384/16 or 384/32/0.97, or one of {', '.join(SWEEP_PRESETS)}."
+    )
     try:
         if len(parts) not in (2, 3):
             raise ValueError
@@ -212,46 +227,87 @@ def register(app: typer.Typer) -> None:
     @app.command(epilog=_EPILOG)
     @handle_errors
     def synth(
-        out: Path = typer.Option(..., "--out", "-o", file_okay=False, help="Output folder (created if missing)."),
+        out: Path = typer.Option(
+            ..., "--out", "-o", file_okay=False, help="Output folder (created if missing)."
+        ),
         emotion: List[str] = typer.Option(  # noqa: UP006
-            [], "--emotion", "-e", help="Emotion preset (happiness, sadness, surprise, fear, anger, "
-            "disgust) or 'all'; repeat for several. Each is its own output."),
+            [],
+            "--emotion",
+            "-e",
+            help="Emotion preset (happiness, sadness, surprise, fear, anger, "
+            "disgust) or 'all'; repeat for several. Each is its own output.",
+        ),
         au: List[str] = typer.Option(  # noqa: UP006
-            [], "--au", help="Action unit with intensity in [0, 1], e.g. AU12=0.8, AU12L, AU26=0.5 "
-            "(repeat, or comma-separated)."),
+            [],
+            "--au",
+            help="Action unit with intensity in [0, 1], e.g. AU12=0.8, AU12L, AU26=0.5 "
+            "(repeat, or comma-separated).",
+        ),
         muscle: List[str] = typer.Option(  # noqa: UP006
-            [], "--muscle", "-m", help="Muscle control with activation in [0, 1], e.g. "
-            "zygomaticus_major_L=0.6 (repeat)."),
-        jaw_pitch: float = typer.Option(0.0, "--jaw-pitch", help="Jaw opening, degrees (limits -4..18)."),
-        jaw_yaw: float = typer.Option(0.0, "--jaw-yaw", help="Jaw yaw toward the subject's left, degrees (-5..5)."),
-        jaw_protrusion: float = typer.Option(0.0, "--jaw-protrusion", help="Jaw protrusion, mm (-2..6)."),
-        intensity: float = typer.Option(1.0, "--intensity", min=0.0, max=1.0,
-                                        help="Scale of the emotion presets."),
-        name: Optional[str] = typer.Option(  # noqa: UP007
-            None, "--name", help="Output name of the custom expression (default: built from the options)."),
-        mesh: Optional[Path] = typer.Option(  # noqa: UP007
-            None, "--mesh", help="Face mesh (.ply/.obj) instead of the embedded default head."),
-        landmarks: Optional[Path] = typer.Option(  # noqa: UP007
-            None, "--landmarks", help="Its .lm3 landmarks (default: beside the mesh)."),
+            [],
+            "--muscle",
+            "-m",
+            help="Muscle control with activation in [0, 1], e.g. zygomaticus_major_L=0.6 (repeat).",
+        ),
+        jaw_pitch: float = typer.Option(
+            0.0, "--jaw-pitch", help="Jaw opening, degrees (limits -4..18)."
+        ),
+        jaw_yaw: float = typer.Option(
+            0.0, "--jaw-yaw", help="Jaw yaw toward the subject's left, degrees (-5..5)."
+        ),
+        jaw_protrusion: float = typer.Option(
+            0.0, "--jaw-protrusion", help="Jaw protrusion, mm (-2..6)."
+        ),
+        intensity: float = typer.Option(
+            1.0, "--intensity", min=0.0, max=1.0, help="Scale of the emotion presets."
+        ),
+        name: str | None = typer.Option(  # noqa: UP007
+            None,
+            "--name",
+            help="Output name of the custom expression (default: built from the options).",
+        ),
+        mesh: Path | None = typer.Option(  # noqa: UP007
+            None, "--mesh", help="Face mesh (.ply/.obj) instead of the embedded default head."
+        ),
+        landmarks: Path | None = typer.Option(  # noqa: UP007
+            None, "--landmarks", help="Its .lm3 landmarks (default: beside the mesh)."
+        ),
         units: Units = typer.Option(Units.mm, "--units", help="Units of --mesh and --landmarks."),
-        out_units: Units = typer.Option(Units.mm, "--out-units", help="Units of the written files."),
-        backend: str = typer.Option("pbd", "--backend", help="Simulation backend: pbd (position-based "
-                                    "dynamics) or ltw (Lee-Terzopoulos-Waters layered springs)."),
-        pictures: bool = typer.Option(True, "--pictures/--no-pictures", help="Write a PNG per expression."),
-        sweeps: Optional[str] = typer.Option(  # noqa: UP007
-            None, "--sweeps", help="Quasi-static solve of the pbd backend as MUSCLE/SKIN sweeps (default "
+        out_units: Units = typer.Option(
+            Units.mm, "--out-units", help="Units of the written files."
+        ),
+        backend: str = typer.Option(
+            "pbd",
+            "--backend",
+            help="Simulation backend: pbd (position-based "
+            "dynamics) or ltw (Lee-Terzopoulos-Waters layered springs).",
+        ),
+        pictures: bool = typer.Option(
+            True, "--pictures/--no-pictures", help="Write a PNG per expression."
+        ),
+        sweeps: str | None = typer.Option(  # noqa: UP007
+            None,
+            "--sweeps",
+            help="Quasi-static solve of the pbd backend as MUSCLE/SKIN sweeps (default "
             "32/8, ~50 ms on the ICT face, up to 1.6 mm short of equilibrium). An optional third "
             "number turns on the Chebyshev acceleration of the skin solve with that spectral-radius "
             "estimate. Presets: 'converged' = 32/56/0.995 (~170 ms on the ICT face, within 0.03 mm "
             "of its equilibrium), 'reference' = 48/96/0.99 (about twice as long, within 0.001 mm). Where "
             "skin buckles or meets the teeth an accelerated solve can settle at another equilibrium "
             "than plain sweeps from rest, e.g. 3000/400 (python benchmarks/bench_synth.py "
-            "--sweeps converged,reference --expressions)."),
+            "--sweeps converged,reference --expressions).",
+        ),
         compare_backends: bool = typer.Option(
-            False, "--compare-backends", help="Also build the other backend's rig on the same face and write "
-            "backends_emotions.png: the six emotions, PBD next to LTW, with their distance (mm) as a heat map."),
-        list_controls: bool = typer.Option(False, "--list-controls", help="Print the rig's muscle "
-                                           "controls and the AU table, then exit."),
+            False,
+            "--compare-backends",
+            help="Also build the other backend's rig on the same face and write "
+            "backends_emotions.png: the six emotions, PBD next to LTW, with their distance (mm) as a heat map.",
+        ),
+        list_controls: bool = typer.Option(
+            False,
+            "--list-controls",
+            help="Print the rig's muscle controls and the AU table, then exit.",
+        ),
         quiet: bool = typer.Option(False, "--quiet", "-q", help="Only print errors."),
     ):
         """Synthesise expressions: muscle activations, AUs, emotions and jaw pose in, face meshes out.
@@ -275,8 +331,10 @@ def register(app: typer.Typer) -> None:
         n_sweeps = None
         if sweeps is not None:
             if backend != "pbd":
-                raise RigError("--sweeps sets the pbd backend's solve; the ltw backend has its own "
-                               "step count (leave --sweeps out).")
+                raise RigError(
+                    "--sweeps sets the pbd backend's solve; the ltw backend has its own "
+                    "step count (leave --sweeps out)."
+                )
             n_sweeps = parse_sweeps(sweeps)
         emotions = []
         for e in emotion:
@@ -285,13 +343,17 @@ def register(app: typer.Typer) -> None:
                     emotions += list(EMOTIONS)
                 elif item:
                     if item not in EMOTIONS:
-                        raise RigError(f"--emotion {item!r}: unknown preset; use one of {sorted(EMOTIONS)} or 'all'.")
+                        raise RigError(
+                            f"--emotion {item!r}: unknown preset; use one of {sorted(EMOTIONS)} or 'all'."
+                        )
                     emotions.append(item)
         aus = parse_aus([s for a in au for s in a.split(",") if s.strip()])
         jaw_given = any(v != 0.0 for v in (jaw_pitch, jaw_yaw, jaw_protrusion))
         if not (emotions or aus or muscle or jaw_given or list_controls or compare_backends):
-            raise RigError("nothing to synthesise: give --emotion, --au, --muscle or --jaw-* "
-                           "(see jaxface synth --help).")
+            raise RigError(
+                "nothing to synthesise: give --emotion, --au, --muscle or --jaw-* "
+                "(see jaxface synth --help)."
+            )
         with status_steps("jaxface synth", quiet=quiet) as step:
             step("building the face")
             if mesh is None:
@@ -307,7 +369,9 @@ def register(app: typer.Typer) -> None:
             step(f"building the {backend} rig (skull, jaw, muscles)")
             rig = build_rig(*rig_args, backend=backend)
             if n_sweeps is not None:
-                rig = rig.with_iterations(muscles=n_sweeps[0], skin=n_sweeps[1], skin_rho=n_sweeps[2])
+                rig = rig.with_iterations(
+                    muscles=n_sweeps[0], skin=n_sweeps[1], skin_rho=n_sweeps[2]
+                )
             if list_controls:
                 from ..facs import au_matrix
 
@@ -325,16 +389,29 @@ def register(app: typer.Typer) -> None:
                 a, jaw, puff = aus_to_controls(aus, rig.muscle_names)
                 for k, v in parse_muscles(muscle, rig.muscle_names).items():
                     a[list(rig.muscle_names).index(k)] = v
-                jaw = JawPose(float(jaw.pitch_deg) + jaw_pitch, float(jaw.yaw_deg) + jaw_yaw,
-                              float(jaw.protrusion_mm) + jaw_protrusion)
-                label = name or _safe_name("_".join(
-                    [f"{k}-{v:g}" for k, v in aus.items()] + [m_.replace("=", "-") for m_ in muscle]
-                    + ([f"jaw{jaw_pitch:g}_{jaw_yaw:g}_{jaw_protrusion:g}"] if jaw_given else []))[:80])
+                jaw = JawPose(
+                    float(jaw.pitch_deg) + jaw_pitch,
+                    float(jaw.yaw_deg) + jaw_yaw,
+                    float(jaw.protrusion_mm) + jaw_protrusion,
+                )
+                label = name or _safe_name(
+                    "_".join(
+                        [f"{k}-{v:g}" for k, v in aus.items()]
+                        + [m_.replace("=", "-") for m_ in muscle]
+                        + (
+                            [f"jaw{jaw_pitch:g}_{jaw_yaw:g}_{jaw_protrusion:g}"]
+                            if jaw_given
+                            else []
+                        )
+                    )[:80]
+                )
                 exprs.append((label, np.asarray(a, float), jaw, puff))
             res = []
             if exprs:
                 step(f"compiling and synthesising {len(exprs)} expression(s)")
-                res = synthesize_files(rig, exprs, out, pictures=pictures, out_units=out_units.value)
+                res = synthesize_files(
+                    rig, exprs, out, pictures=pictures, out_units=out_units.value
+                )
             if compare_backends:
                 from ..ltw.pictures import compare_emotions
 
@@ -344,13 +421,17 @@ def register(app: typer.Typer) -> None:
                 pbd_rig, ltw_rig = (rig, rig2) if backend == "pbd" else (rig2, rig)
                 step("synthesising the six emotions with both backends")
                 out.mkdir(parents=True, exist_ok=True)
-                cmp_path = compare_emotions(out / "backends_emotions.png", ltw_rig, pbd_rig, intensity=intensity)
+                cmp_path = compare_emotions(
+                    out / "backends_emotions.png", ltw_rig, pbd_rig, intensity=intensity
+                )
         if not quiet:
             for r in res:
                 top = sorted(r["au_intensities"].items(), key=lambda kv: -kv[1])[:4]
-                console.print(f"  {r['name']}: max displacement {r['displacement_mm']['max']:.1f} mm, "
-                              f"jaw {r['jaw']['pitch_deg']:.1f} deg, strongest AUs "
-                              + ", ".join(f"{k} {v:.2f}" for k, v in top if v > 0))
+                console.print(
+                    f"  {r['name']}: max displacement {r['displacement_mm']['max']:.1f} mm, "
+                    f"jaw {r['jaw']['pitch_deg']:.1f} deg, strongest AUs "
+                    + ", ".join(f"{k} {v:.2f}" for k, v in top if v > 0)
+                )
             console.print(f"wrote {len(res)} expression(s) to {out}")
             if compare_backends:
                 console.print(f"backend comparison: {cmp_path}")

@@ -55,7 +55,16 @@ _LAZY = {
     "ExpressionFit": "jaxface.fit.pipeline",
     "au_motion": "jaxface.fit.au_motion",
 }
-_SUBMODULES = {"align", "register", "metrics", "baselines", "evaluation", "solve", "pipeline", "au_motion"}
+_SUBMODULES = {
+    "align",
+    "register",
+    "metrics",
+    "baselines",
+    "evaluation",
+    "solve",
+    "pipeline",
+    "au_motion",
+}
 
 __all__ = sorted(set(_LAZY) | _SUBMODULES)
 

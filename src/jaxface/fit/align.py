@@ -44,8 +44,9 @@ expression fit's own rigid correction has to finish the job. Where a still regio
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Literal, Sequence
+from typing import Any, Literal
 
 import numpy as np
 
@@ -140,7 +141,9 @@ def _face_frame(lm: dict[str, np.ndarray]) -> tuple[np.ndarray, float]:
     return up, max(size, 1e-6)
 
 
-def stable_mask(points, landmarks, *, radius_factor: float = 0.6, below_nose_mm: float = 5.0) -> np.ndarray:
+def stable_mask(
+    points, landmarks, *, radius_factor: float = 0.6, below_nose_mm: float = 5.0
+) -> np.ndarray:
     """The expression-stable region of a face: ``(K,)`` bool over ``points`` ``(K, 3)`` mm.
 
     A point belongs to it when it lies within ``radius_factor`` x (outer-eye-corner
@@ -154,7 +157,9 @@ def stable_mask(points, landmarks, *, radius_factor: float = 0.6, below_nose_mm:
     p = np.asarray(points, dtype=np.float64)
     lm, used = _stable_positions(landmarks)
     if "Nose tip" not in lm:
-        raise LandmarkError("the stable region needs the 'Nose tip' landmark.", missing=("Nose tip",))
+        raise LandmarkError(
+            "the stable region needs the 'Nose tip' landmark.", missing=("Nose tip",)
+        )
     up, size = _face_frame(lm)
     st = np.stack([lm[n] for n in used])
     near = np.zeros(len(p), bool)
@@ -488,8 +493,12 @@ def align_scans(
         raise LandmarkError(
             f"alignment must not use mouth or chin landmarks (they move with expression): {bad}."
         )
-    mlm = landmark_dict(moving_landmarks if moving_landmarks is not None else getattr(moving, "landmarks", None))
-    flm = landmark_dict(fixed_landmarks if fixed_landmarks is not None else getattr(fixed, "landmarks", None))
+    mlm = landmark_dict(
+        moving_landmarks if moving_landmarks is not None else getattr(moving, "landmarks", None)
+    )
+    flm = landmark_dict(
+        fixed_landmarks if fixed_landmarks is not None else getattr(fixed, "landmarks", None)
+    )
     used = [n for n in labels if n in mlm and n in flm]
     if len(used) < 3:
         raise LandmarkError(
@@ -512,7 +521,9 @@ def align_scans(
         if fixed_index is None:
             fv, ft = _mesh_or_points(fixed)
             if ft is None:
-                raise FitError("the fixed scan must be a mesh (or a grid scan) for ICP; got bare points.")
+                raise FitError(
+                    "the fixed scan must be a mesh (or a grid scan) for ICP; got bare points."
+                )
             fixed_index = SurfaceIndex(fv, ft)
         normals = None
         usable = np.ones(len(mv), bool)
@@ -551,7 +562,9 @@ def align_scans(
 
         if isinstance(region, str):
             if region not in ("auto", "stable"):
-                raise FitError(f"unknown ICP region {region!r}; use 'auto', 'stable' or a bool mask.")
+                raise FitError(
+                    f"unknown ICP region {region!r}; use 'auto', 'stable' or a bool mask."
+                )
             ids = pick(stable_mask(mv_f, moved_lm))
             if ids.size < 50:
                 notes.append(f"ICP skipped: only {ids.size} points in the stable region")
@@ -567,13 +580,19 @@ def align_scans(
         else:
             m = np.asarray(region, bool)
             if m.shape != (len(mv),):
-                raise FitError(f"region mask must be ({len(mv)},) bool over the moving vertices, got {m.shape}.")
+                raise FitError(
+                    f"region mask must be ({len(mv)},) bool over the moving vertices, got {m.shape}."
+                )
             ids = pick(m)
             T, st = run(ids, "mask", T)
             stages.append(st)
     a = T.apply(src)
     lrms = float(np.sqrt(np.mean(np.sum((a - dst) ** 2, axis=1))))
-    residual = stages[-1].residual if stages else DistanceStats.from_distances(np.linalg.norm(a - dst, axis=1))
+    residual = (
+        stages[-1].residual
+        if stages
+        else DistanceStats.from_distances(np.linalg.norm(a - dst, axis=1))
+    )
     converged = all(s.converged for s in stages)
     for s in stages:
         if not s.converged:

@@ -35,7 +35,7 @@ what they see.
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import equinox as eqx
 import jax
@@ -87,27 +87,42 @@ def au_motion(response, activations, jaw, muscle_names: Sequence[str]) -> dict[s
     """
     aus, inten, rows = au_decomposition(activations, muscle_names)
     M = rows.shape[1]
-    own = inten[:, None] * rows                       # (K, M) each AU variant's share
+    own = inten[:, None] * rows  # (K, M) each AU variant's share
     sided = [au for au in aus if au[-1] in "LR"]
     bases = list(dict.fromkeys(au[:-1] for au in sided))
-    labels = list(aus) + bases                        # bilateral AUs: both sides together
+    labels = list(aus) + bases  # bilateral AUs: both sides together
     shares = list(own) + [sum(own[aus.index(au)] for au in sided if au[:-1] == b) for b in bases]
     je = np.asarray(jaw, np.float64).ravel()
     p, y, q = max(float(je[0]), 0.0), float(je[1]), max(float(je[2]), 0.0)
     p26 = AU_JAW["AU26"][0]
-    jaw_rows = [("AU26", (min(p, p26), 0.0, 0.0)), ("AU29", (0.0, 0.0, q)),
-                ("AU30L", (0.0, max(y, 0.0), 0.0)), ("AU30R", (0.0, min(y, 0.0), 0.0)),
-                ("_open", (p, 0.0, 0.0))]
+    jaw_rows = [
+        ("AU26", (min(p, p26), 0.0, 0.0)),
+        ("AU29", (0.0, 0.0, q)),
+        ("AU30L", (0.0, max(y, 0.0), 0.0)),
+        ("AU30R", (0.0, min(y, 0.0), 0.0)),
+        ("_open", (p, 0.0, 0.0)),
+    ]
     dt = response.rest.dtype
     S = np.asarray(shares).reshape(-1, M)
     # every share's activations lie on its table rows' non-zero pattern (fixed per rig)
-    pattern = np.vstack([rows] + [sum(rows[aus.index(au)] for au in sided if au[:-1] == b) for b in bases])
+    pattern = np.vstack(
+        [rows] + [sum(rows[aus.index(au)] for au in sided if au[:-1] == b) for b in bases]
+    )
     r, m = np.nonzero(pattern)
     J = np.asarray([j for _, j in jaw_rows], np.float64)
-    rms = np.asarray(_rms_motion(response, jnp.asarray(r), jnp.asarray(m), jnp.asarray(S[r, m], dt),
-                                 jnp.asarray(J, dt), len(S)), np.float64)
+    rms = np.asarray(
+        _rms_motion(
+            response,
+            jnp.asarray(r),
+            jnp.asarray(m),
+            jnp.asarray(S[r, m], dt),
+            jnp.asarray(J, dt),
+            len(S),
+        ),
+        np.float64,
+    )
     out = {lab: float(v) for lab, v in zip(labels, rms[: len(labels)])}
-    jaw_rms = {lab: float(v) for (lab, _), v in zip(jaw_rows, rms[len(labels):])}
+    jaw_rms = {lab: float(v) for (lab, _), v in zip(jaw_rows, rms[len(labels) :])}
     out["AU26"] = jaw_rms["AU26"]
     # the opening beyond AU26's range: the extra motion of the whole opening over AU26's part
     out["AU27"] = max(jaw_rms["_open"] - jaw_rms["AU26"], 0.0) if p > p26 else 0.0
@@ -149,7 +164,16 @@ def _spline_weights(x, knots):
     M, N = x.shape[0], knots.shape[0]
     m = jnp.arange(M)
     W = jnp.zeros((M, 2 * N), x.dtype)
-    W = W.at[m, s].add(w[:, 0]).at[m, s + 1].add(w[:, 1]).at[m, N + s].add(w[:, 2]).at[m, N + s + 1].add(w[:, 3])
+    W = (
+        W.at[m, s]
+        .add(w[:, 0])
+        .at[m, s + 1]
+        .add(w[:, 1])
+        .at[m, N + s]
+        .add(w[:, 2])
+        .at[m, N + s + 1]
+        .add(w[:, 3])
+    )
     return W.reshape(-1)
 
 
@@ -169,8 +193,15 @@ def _sparse_cost(G, knots, i, rows, phi_a, weight):
     return c, mis, g
 
 
-def au_sparse(response, activations, jaw, muscle_names: Sequence[str], *,
-              weight: float = AU_SPARSE_WEIGHT, gram=None) -> tuple[dict[str, float], float]:
+def au_sparse(
+    response,
+    activations,
+    jaw,
+    muscle_names: Sequence[str],
+    *,
+    weight: float = AU_SPARSE_WEIGHT,
+    gram=None,
+) -> tuple[dict[str, float], float]:
     """AU intensities of the sparsest AU combination that reproduces a fit's skin motion.
 
     Solves, over the unilateral AU intensities ``i`` of the table (:func:`jaxface.facs.au_decomposition`'s
@@ -212,7 +243,9 @@ def au_sparse(response, activations, jaw, muscle_names: Sequence[str], *,
 
     w = float(weight)
     if not (np.isfinite(w) and w >= 0.0):
-        raise ValueError(f"au_sparse: weight must be a finite number >= 0 (mm^2 per unit intensity), got {weight!r}.")
+        raise ValueError(
+            f"au_sparse: weight must be a finite number >= 0 (mm^2 per unit intensity), got {weight!r}."
+        )
     a = np.asarray(activations, np.float64).ravel()
     aus, inten, rows = au_decomposition(a, muscle_names)
     dt = response.rest.dtype
@@ -227,8 +260,14 @@ def au_sparse(response, activations, jaw, muscle_names: Sequence[str], *,
         return float(c), np.asarray(g, np.float64)
 
     if len(inten):
-        sol = minimize(fun, np.asarray(inten, np.float64), jac=True, method="L-BFGS-B",
-                       bounds=[(0.0, 1.0)] * len(inten), options={"maxiter": 500})
+        sol = minimize(
+            fun,
+            np.asarray(inten, np.float64),
+            jac=True,
+            method="L-BFGS-B",
+            bounds=[(0.0, 1.0)] * len(inten),
+            options={"maxiter": 500},
+        )
         x = np.clip(sol.x, 0.0, 1.0)
     else:
         x = np.zeros(0)

@@ -29,7 +29,8 @@ scan's frame, directly comparable with the fitter's output.
 
 from __future__ import annotations
 
-from typing import Any, NamedTuple, Sequence
+from collections.abc import Sequence
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -37,8 +38,14 @@ from ..errors import LandmarkError
 from ..io.preprocess import RigidTransform
 from .metrics import landmark_dict, mesh_arrays
 
-__all__ = ["baseline_b0", "baseline_b1", "baseline_b2", "b2_action_unit", "BaselineB2",
-           "expression_landmark_displacements"]
+__all__ = [
+    "baseline_b0",
+    "baseline_b1",
+    "baseline_b2",
+    "b2_action_unit",
+    "BaselineB2",
+    "expression_landmark_displacements",
+]
 
 
 def _transform_of(alignment) -> RigidTransform:
@@ -209,11 +216,15 @@ def baseline_b2(
     T = _transform_of(alignment)
     pts = None
     if magnitude is None:
-        pts = np.asarray(getattr(expression_scan, "points", expression_scan), dtype=np.float64).reshape(-1, 3)
+        pts = np.asarray(
+            getattr(expression_scan, "points", expression_scan), dtype=np.float64
+        ).reshape(-1, 3)
         pts = pts[np.all(np.isfinite(pts), axis=1)]
         if len(pts) == 0:
-            raise FitError("B2: the expression scan has no valid (finite) points to fit the magnitude "
-                           "to; give a scan with data, or a fixed magnitude=.")
+            raise FitError(
+                "B2: the expression scan has no valid (finite) points to fit the magnitude "
+                "to; give a scan with data, or a fixed magnitude=."
+            )
     v, f = mesh_arrays(registration.mesh)
     target = (TriMesh(v, f, validate=False), registration.landmarks)
     anim = animate(source_neutral, source_au_scan, target, au, 1.0, **animate_kw)
@@ -225,4 +236,6 @@ def baseline_b2(
         m, _ = fit_magnitude(anim, T.apply(pts), mask=mask, bounds=bounds, cap_mm=cap_mm)
     else:
         m = float(magnitude)
-    return BaselineB2(TriMesh(T.inverse().apply(anim.at_magnitude(m)), f, validate=False), float(m), anim)
+    return BaselineB2(
+        TriMesh(T.inverse().apply(anim.at_magnitude(m)), f, validate=False), float(m), anim
+    )

@@ -194,7 +194,9 @@ def load_truth(root=None) -> TruthSet:
     root = Path(root)
     f = root / "truth.json"
     if not f.is_file():
-        raise DataNotFoundError(f"no truth.json in {root}; point root at shared/data/bosphorus_style.")
+        raise DataNotFoundError(
+            f"no truth.json in {root}; point root at shared/data/bosphorus_style."
+        )
     raw = json.loads(f.read_text())
     ids = {str(k): int(v) for k, v in raw.get("landmark_vertex_ids_ict", {}).items()}
     records = {}
@@ -290,11 +292,17 @@ class TruthEvaluation:
         return self.error["all"].mean
 
     def to_dict(self) -> dict[str, Any]:
-        return {"stem": self.stem, "n_region": self.n_region, "unit": "mm",
-                "error": {k: v.to_dict() for k, v in self.error.items()}}
+        return {
+            "stem": self.stem,
+            "n_region": self.n_region,
+            "unit": "mm",
+            "error": {k: v.to_dict() for k, v in self.error.items()},
+        }
 
 
-def evaluate_against_truth(fitted, truth: TruthSet, stem: str, *, region=None, **region_kw) -> TruthEvaluation:
+def evaluate_against_truth(
+    fitted, truth: TruthSet, stem: str, *, region=None, **region_kw
+) -> TruthEvaluation:
     """Distances from the truth vertices in the evaluation region to ``fitted`` (mm).
 
     Arguments:
@@ -341,7 +349,9 @@ class ICTTemplate:
     ict_ids: np.ndarray
 
 
-def ict_template(npz_path=None, truth: TruthSet | None = None, *, groups=("face", "head_neck")) -> ICTTemplate:
+def ict_template(
+    npz_path=None, truth: TruthSet | None = None, *, groups=("face", "head_neck")
+) -> ICTTemplate:
     """Build the ICT neutral skin template from ``shared/data/ict/ict_face.npz``.
 
     Arguments:
@@ -364,7 +374,9 @@ def ict_template(npz_path=None, truth: TruthSet | None = None, *, groups=("face"
         raise FitError(f"{npz_path}: unknown ICT triangle groups {missing}; have {names}.")
     gid = [names.index(g) for g in groups]
     tri_mask = np.isin(d["triangle_group"], gid)
-    full = TriMesh(np.asarray(d["neutral"], np.float64), np.asarray(d["triangles"], np.int64), validate=False)
+    full = TriMesh(
+        np.asarray(d["neutral"], np.float64), np.asarray(d["triangles"], np.int64), validate=False
+    )
     mesh, old = full.submesh(tri_mask)
     ids = truth.landmark_vertex_ids
     lm_names = [n for n in ids if ids[n] in set(old.tolist())]

@@ -27,8 +27,9 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -248,7 +249,9 @@ class SurfaceIndex:
             )
         self.active_ids = np.flatnonzero(active)
         if self.active_ids.size == 0:
-            raise MeshError("the surface has no (active) triangles to search.", problem="empty_mesh")
+            raise MeshError(
+                "the surface has no (active) triangles to search.", problem="empty_mesh"
+            )
         fa = f[self.active_ids]
         self._a, self._b, self._c = v[fa[:, 0]], v[fa[:, 1]], v[fa[:, 2]]
         # normals
@@ -259,7 +262,9 @@ class SurfaceIndex:
         nrm = np.linalg.norm(vn, axis=1, keepdims=True)
         self.vertex_normals = np.where(nrm > 0, vn / np.where(nrm > 0, nrm, 1.0), 0.0)
         # boundary of the active part: edges used by exactly one active triangle
-        e = np.concatenate([fa[:, [1, 2]], fa[:, [2, 0]], fa[:, [0, 1]]])  # edge k opposite corner k
+        e = np.concatenate(
+            [fa[:, [1, 2]], fa[:, [2, 0]], fa[:, [0, 1]]]
+        )  # edge k opposite corner k
         es = np.sort(e, axis=1)
         key = es[:, 0] * np.int64(len(v)) + es[:, 1]
         _, inv, cnt = np.unique(key, return_inverse=True, return_counts=True)
@@ -295,7 +300,7 @@ class SurfaceIndex:
             self._buckets.append((cKDTree(cen[ids]), ids, float(rad[ids].max())))
 
     @classmethod
-    def from_mesh(cls, mesh, triangle_mask=None) -> "SurfaceIndex":
+    def from_mesh(cls, mesh, triangle_mask=None) -> SurfaceIndex:
         """Index of a :class:`TriMesh` / ``trimesh.Trimesh`` / ``(V, F)`` pair."""
         v, f = mesh_arrays(mesh)
         return cls(v, f, triangle_mask)
@@ -366,7 +371,9 @@ class SurfaceIndex:
         """
         q = np.asarray(points, dtype=np.float64)
         if q.ndim != 2 or q.shape[1] != 3:
-            raise MeshError(f"query points must be (K, 3) mm, got {q.shape}.", problem="points_shape")
+            raise MeshError(
+                f"query points must be (K, 3) mm, got {q.shape}.", problem="points_shape"
+            )
         if not np.all(np.isfinite(q)):
             bad = np.flatnonzero(~np.isfinite(q).all(1))
             raise MeshError(
@@ -377,11 +384,20 @@ class SurfaceIndex:
         if len(q) > chunk:
             # independent blocks: on all cores (NumPy and the k-d trees release the GIL)
             parts = thread_map(
-                lambda s: self.query(q[s : s + chunk], max_distance=max_distance, exact=exact,
-                                     k_vertices=k_vertices, chunk=chunk),
-                range(0, len(q), chunk))
+                lambda s: self.query(
+                    q[s : s + chunk],
+                    max_distance=max_distance,
+                    exact=exact,
+                    k_vertices=k_vertices,
+                    chunk=chunk,
+                ),
+                range(0, len(q), chunk),
+            )
             return ClosestPoints(
-                *(np.concatenate([getattr(p, f.name) for p in parts]) for f in dataclasses.fields(ClosestPoints))
+                *(
+                    np.concatenate([getattr(p, f.name) for p in parts])
+                    for f in dataclasses.fields(ClosestPoints)
+                )
             )
         n = len(q)
         if n == 0:
@@ -462,7 +478,7 @@ class DistanceStats:
     max: float
 
     @classmethod
-    def from_distances(cls, distances) -> "DistanceStats":
+    def from_distances(cls, distances) -> DistanceStats:
         d = np.abs(np.asarray(distances, dtype=np.float64).ravel())
         if d.size and not np.all(np.isfinite(d)):
             raise FitError(
@@ -512,7 +528,7 @@ class FacePlane:
     normal: np.ndarray
 
     @classmethod
-    def from_landmarks(cls, landmarks) -> "FacePlane":
+    def from_landmarks(cls, landmarks) -> FacePlane:
         """Plane through the nose tip, normal = up direction of the face from the landmarks
         (mouth-corner midpoint -> inner-eye-corner midpoint, made orthogonal to the
         viewing direction; outer eye corners or +y used when those are missing).
@@ -555,9 +571,11 @@ class FacePlane:
         """``(K,)`` bool: the points at or above the plane (upper face)."""
         return self.height(points) >= 0.0
 
-    def transformed(self, transform) -> "FacePlane":
+    def transformed(self, transform) -> FacePlane:
         """The plane moved by a rigid transform (an object with ``rotation`` and ``apply``)."""
-        return FacePlane(point=transform.apply(self.point[None])[0], normal=transform.rotation @ self.normal)
+        return FacePlane(
+            point=transform.apply(self.point[None])[0], normal=transform.rotation @ self.normal
+        )
 
 
 def _region_masks(points: np.ndarray, plane: FacePlane | None) -> dict[str, np.ndarray]:
@@ -592,7 +610,9 @@ def landmark_errors(predicted, target, names=None) -> dict[str, float]:
         want = list(landmark_dict({n: np.zeros(3) for n in names}))
         missing = [k for k in want if k not in p or k not in t]
         if missing:
-            raise LandmarkError(f"landmarks missing for the error computation: {missing}.", missing=missing)
+            raise LandmarkError(
+                f"landmarks missing for the error computation: {missing}.", missing=missing
+            )
         keys = want
     return {k: float(np.linalg.norm(p[k] - t[k])) for k in keys}
 
@@ -704,10 +724,16 @@ def fit_metrics(
         if max_distance is not None:
             keep &= cp.distances <= max_distance
         regions = _region_masks(pts, plane)
-        scan_stats = {k: DistanceStats.from_distances(cp.distances[keep & m]) for k, m in regions.items()}
+        scan_stats = {
+            k: DistanceStats.from_distances(cp.distances[keep & m]) for k, m in regions.items()
+        }
     truth_stats = None
     if truth is not None:
-        tv = np.asarray(truth, dtype=np.float64) if isinstance(truth, np.ndarray) else mesh_arrays(truth)[0]
+        tv = (
+            np.asarray(truth, dtype=np.float64)
+            if isinstance(truth, np.ndarray)
+            else mesh_arrays(truth)[0]
+        )
         if tv.ndim != 2 or tv.shape[1] != 3:
             raise FitError(f"truth must be a mesh or (K, 3) points in mm, got shape {tv.shape}.")
         tm = np.ones(len(tv), bool) if truth_mask is None else np.asarray(truth_mask, bool)
@@ -725,5 +751,10 @@ def fit_metrics(
             keys = list(lm_err)
             pos = np.stack([t[k] for k in keys])
             err = np.array([lm_err[k] for k in keys])
-            lm_stats = {k: DistanceStats.from_distances(err[m]) for k, m in _region_masks(pos, plane).items()}
-    return FitMetrics(scan_to_fit=scan_stats, truth_to_fit=truth_stats, landmarks=lm_err, landmark_stats=lm_stats)
+            lm_stats = {
+                k: DistanceStats.from_distances(err[m])
+                for k, m in _region_masks(pos, plane).items()
+            }
+    return FitMetrics(
+        scan_to_fit=scan_stats, truth_to_fit=truth_stats, landmarks=lm_err, landmark_stats=lm_stats
+    )

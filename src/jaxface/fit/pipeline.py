@@ -28,14 +28,22 @@ import json
 import math
 import time
 import warnings
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any
 
 import numpy as np
 
 from ..errors import FitError, LandmarkError
-from .solve import FitOptions, ForwardModel, PointFit, ResponseModel, build_response_model, fit_points
+from .solve import (
+    FitOptions,
+    ForwardModel,
+    PointFit,
+    ResponseModel,
+    build_response_model,
+    fit_points,
+)
 
 __all__ = [
     "SubjectOptions",
@@ -49,7 +57,18 @@ __all__ = [
 ]
 
 #: top-level keys of the ``<stem>.json`` written by :meth:`ExpressionFit.write`
-JSON_KEYS = ("activations", "au_intensities", "au_motion_mm", "au_sparse", "jaw", "rigid", "metrics", "baselines", "solver", "frame")
+JSON_KEYS = (
+    "activations",
+    "au_intensities",
+    "au_motion_mm",
+    "au_sparse",
+    "jaw",
+    "rigid",
+    "metrics",
+    "baselines",
+    "solver",
+    "frame",
+)
 
 
 @dataclass(frozen=True)
@@ -128,7 +147,9 @@ class Subject:
         """The rig's landmarks on a skin with the rig's topology (Landmarks, mm)."""
         from ..io.scanner import SkinLandmarks
 
-        bound = SkinLandmarks(self.landmark_names, self.landmark_tri, self.landmark_bary, self.triangles)
+        bound = SkinLandmarks(
+            self.landmark_names, self.landmark_tri, self.landmark_bary, self.triangles
+        )
         return bound.landmarks(vertices)
 
 
@@ -140,21 +161,34 @@ def _warp_teeth(template, registration, radius_mm: float = 60.0):
     from ..rbf import fit_numpy
     from .metrics import landmark_dict
 
-    if getattr(template, "upper_teeth", None) is None or getattr(template, "lower_teeth", None) is None:
+    if (
+        getattr(template, "upper_teeth", None) is None
+        or getattr(template, "lower_teeth", None) is None
+    ):
         return None, None
     tv = np.asarray(registration.template.mesh.vertices, np.float64)
     rv = registration.vertices
     lm = landmark_dict(registration.template.landmarks)
-    mouth = [lm[n] for n in ("Left mouth corner", "Right mouth corner", "Upper lip outer middle",
-                             "Lower lip outer middle") if n in lm]
+    mouth = [
+        lm[n]
+        for n in (
+            "Left mouth corner",
+            "Right mouth corner",
+            "Upper lip outer middle",
+            "Lower lip outer middle",
+        )
+        if n in lm
+    ]
     centre = np.mean(mouth, axis=0) if mouth else tv.mean(axis=0)
     near = np.flatnonzero(np.linalg.norm(tv - centre, axis=1) < radius_mm)
     if near.size < 20:
         return None, None
     sel = near[np.linspace(0, near.size - 1, min(400, near.size)).astype(np.int64)]
     morph = fit_numpy(tv[sel], rv[sel], kernel="tps", reg=1e-6, merge_duplicates=True)
-    return tuple(TriMesh(morph.apply_np(np.asarray(t.vertices)), np.asarray(t.triangles), validate=False)
-                 for t in (template.upper_teeth, template.lower_teeth))
+    return tuple(
+        TriMesh(morph.apply_np(np.asarray(t.vertices)), np.asarray(t.triangles), validate=False)
+        for t in (template.upper_teeth, template.lower_teeth)
+    )
 
 
 def _compile_and_sample(rig, tris, face_tri, l_tri, opt: SubjectOptions, say, timings: dict):
@@ -167,9 +201,12 @@ def _compile_and_sample(rig, tris, face_tri, l_tri, opt: SubjectOptions, say, ti
     forward(np.zeros(forward.n_controls), np.zeros(3))
     timings["compile_s"] = time.perf_counter() - t
     t = time.perf_counter()
-    say(f"sampling the reduced model ({forward.n_controls * opt.levels + 5 * opt.pitch_knots} syntheses)")
-    response = build_response_model(forward, fit_ids, levels=opt.levels, pitch_knots=opt.pitch_knots,
-                                    controls=opt.controls)
+    say(
+        f"sampling the reduced model ({forward.n_controls * opt.levels + 5 * opt.pitch_knots} syntheses)"
+    )
+    response = build_response_model(
+        forward, fit_ids, levels=opt.levels, pitch_knots=opt.pitch_knots, controls=opt.controls
+    )
     timings["response_s"] = time.perf_counter() - t
     return fit_ids, forward, response
 
@@ -228,8 +265,13 @@ def prepare_subject(
     say("registering the template to the neutral scan")
     v, tr, _ = neutral.mesh_arrays()
     neutral_index = SurfaceIndex(v, tr)
-    reg = register_template(neutral, template=template, template_landmarks=template_landmarks,
-                            options=opt.register, scan_index=neutral_index)
+    reg = register_template(
+        neutral,
+        template=template,
+        template_landmarks=template_landmarks,
+        options=opt.register,
+        scan_index=neutral_index,
+    )
     timings["register_s"] = time.perf_counter() - t
     t = time.perf_counter()
     say(f"building the {opt.backend} rig on the registered neutral")
@@ -241,9 +283,13 @@ def prepare_subject(
         rig = build_rig(reg.mesh, lm, backend=opt.backend)
     timings["rig_s"] = time.perf_counter() - t
     tris = np.asarray(rig.triangles)
-    if tris.shape != np.asarray(reg.mesh.triangles).shape or not np.array_equal(tris, reg.mesh.triangles):
-        raise FitError("the rig's skin topology differs from the registered template's; cannot attach "
-                       "the landmarks and the face mask.")
+    if tris.shape != np.asarray(reg.mesh.triangles).shape or not np.array_equal(
+        tris, reg.mesh.triangles
+    ):
+        raise FitError(
+            "the rig's skin topology differs from the registered template's; cannot attach "
+            "the landmarks and the face mask."
+        )
     face_tri = np.asarray(reg.face_mask, bool)[tris].all(axis=1)
     if not face_tri.any():
         raise FitError("the template's face mask selects no triangle of the skin.")
@@ -253,9 +299,20 @@ def prepare_subject(
     fit_ids, forward, response = _compile_and_sample(rig, tris, face_tri, l_tri, opt, say, timings)
     face_index = SurfaceIndex(reg.vertices, tris, face_tri)
     return Subject(
-        neutral=neutral, registration=reg, rig=rig, forward=forward, response=response, fit_ids=fit_ids,
-        face_triangles=face_tri, landmark_names=tuple(lm.names), landmark_tri=l_tri, landmark_bary=l_bary,
-        neutral_index=neutral_index, face_index=face_index, backend=opt.backend, timings=timings,
+        neutral=neutral,
+        registration=reg,
+        rig=rig,
+        forward=forward,
+        response=response,
+        fit_ids=fit_ids,
+        face_triangles=face_tri,
+        landmark_names=tuple(lm.names),
+        landmark_tri=l_tri,
+        landmark_bary=l_bary,
+        neutral_index=neutral_index,
+        face_index=face_index,
+        backend=opt.backend,
+        timings=timings,
     )
 
 
@@ -305,27 +362,51 @@ def subject_from_rig(
     nl = landmark_dict(neutral.landmarks)
     common = tuple(n for n in names if n in nl)
     reg = Registration(
-        mesh=mesh, template=Template(mesh, reg_lm, fm, "rig rest skin"), landmarks=reg_lm,
-        landmark_points=SurfacePoints(l_tri, l_bary), face_mask=fm, residuals=np.zeros(V),
-        has_data=np.ones(V, bool), coarse=mesh, scan_landmarks=Landmarks(common, np.stack([nl[n] for n in common])),
+        mesh=mesh,
+        template=Template(mesh, reg_lm, fm, "rig rest skin"),
+        landmarks=reg_lm,
+        landmark_points=SurfacePoints(l_tri, l_bary),
+        face_mask=fm,
+        residuals=np.zeros(V),
+        has_data=np.ones(V, bool),
+        coarse=mesh,
+        scan_landmarks=Landmarks(common, np.stack([nl[n] for n in common])),
         labels=common,
     )
     fit_ids, forward, response = _compile_and_sample(rig, tris, face_tri, l_tri, opt, say, timings)
     v, tr, _ = neutral.mesh_arrays()
     return Subject(
-        neutral=neutral, registration=reg, rig=rig, forward=forward, response=response, fit_ids=fit_ids,
-        face_triangles=face_tri, landmark_names=tuple(names), landmark_tri=np.asarray(l_tri),
-        landmark_bary=np.asarray(l_bary), neutral_index=SurfaceIndex(v, tr),
-        face_index=SurfaceIndex(rest, tris, face_tri), backend=getattr(rig, "backend", "pbd"), timings=timings,
+        neutral=neutral,
+        registration=reg,
+        rig=rig,
+        forward=forward,
+        response=response,
+        fit_ids=fit_ids,
+        face_triangles=face_tri,
+        landmark_names=tuple(names),
+        landmark_tri=np.asarray(l_tri),
+        landmark_bary=np.asarray(l_bary),
+        neutral_index=SurfaceIndex(v, tr),
+        face_index=SurfaceIndex(rest, tris, face_tri),
+        backend=getattr(rig, "backend", "pbd"),
+        timings=timings,
     )
 
 
 # --------------------------------------------------------------------------------------
 # one expression scan
 # --------------------------------------------------------------------------------------
-def scan_fit_inputs(subject: Subject, scan, transform, n_points: int, *, seed: int = 0,
-                    preselect_mm: float = 20.0, motion_fraction: float = FitOptions.motion_fraction,
-                    motion_threshold_mm: float = FitOptions.motion_threshold_mm) -> dict:
+def scan_fit_inputs(
+    subject: Subject,
+    scan,
+    transform,
+    n_points: int,
+    *,
+    seed: int = 0,
+    preselect_mm: float = 20.0,
+    motion_fraction: float = FitOptions.motion_fraction,
+    motion_threshold_mm: float = FitOptions.motion_threshold_mm,
+) -> dict:
     """The fitter's view of one scan, in the neutral frame (mm).
 
     Scan vertices (off the scan border, with a normal) are moved by ``transform`` (scan ->
@@ -393,8 +474,16 @@ def scan_fit_inputs(subject: Subject, scan, transform, n_points: int, *, seed: i
             lv[i] = True
         else:
             tgt[i] = rest[name]
-    return {"points": pts, "normals": nn, "valid": valid, "landmarks": tgt, "landmark_valid": lv,
-            "n_candidates": int(len(P)), "n_moving": int(len(moving)), "n_moving_drawn": int(n_moving)}
+    return {
+        "points": pts,
+        "normals": nn,
+        "valid": valid,
+        "landmarks": tgt,
+        "landmark_valid": lv,
+        "n_candidates": int(len(P)),
+        "n_moving": int(len(moving)),
+        "n_moving_drawn": int(n_moving),
+    }
 
 
 @dataclass
@@ -457,8 +546,10 @@ class ExpressionFit:
         M = Ti.rotation @ R
         tt = Ti.rotation @ t + Ti.translation
         return {
-            "alignment": {"description": "scan frame -> neutral scan frame (p_neutral = R p_scan + t), mm",
-                          **self.alignment.to_dict()},
+            "alignment": {
+                "description": "scan frame -> neutral scan frame (p_neutral = R p_scan + t), mm",
+                **self.alignment.to_dict(),
+            },
             "correction": {
                 "description": "fitted rigid correction in the neutral frame: x -> c + R(w) (x - c) + t",
                 "rotation_vector_deg": [float(x) for x in self.fit.rigid[:3]],
@@ -480,13 +571,20 @@ class ExpressionFit:
             "steps": f.steps,
             "time_s": f.seconds,
             "method": "optimistix LevenbergMarquardt (forward-mode Jacobian) on the rig's reduced model "
-                      "with exact-rig defect correction; correspondences refreshed per outer iteration"
-                      + (f"; {self.options.exact_steps} exact-rig LM steps at the end" if self.options.exact_steps else ""),
+            "with exact-rig defect correction; correspondences refreshed per outer iteration"
+            + (
+                f"; {self.options.exact_steps} exact-rig LM steps at the end"
+                if self.options.exact_steps
+                else ""
+            ),
             "backend": self.backend,
             "outer_iterations": [r.to_dict() for r in f.reports],
             "jaw_start_pitch_deg": f.start_pitch,
-            "jaw_as_fitted": {"pitch_deg": float(f.jaw[0]), "yaw_deg": float(f.jaw[1]),
-                              "protrusion_mm": float(f.jaw[2])},
+            "jaw_as_fitted": {
+                "pitch_deg": float(f.jaw[0]),
+                "yaw_deg": float(f.jaw[1]),
+                "protrusion_mm": float(f.jaw[2]),
+            },
             "residual_mm": f.residual_mm,
             "restart": dict(f.restart) if f.restart else None,
             "notes": list(self.notes),
@@ -496,7 +594,7 @@ class ExpressionFit:
         return {
             "name": "scan",
             "description": "the input scan's own coordinate frame (the .fitted.ply and every landmark "
-                           "and metric are in it)",
+            "and metric are in it)",
             "scan": str(getattr(self.scan, "path", "") or self.stem),
             "units": "mm",
             "axes": "+y up, +z toward the viewer (the face looks along +z), subject's left +x",
@@ -519,18 +617,22 @@ class ExpressionFit:
             "frame": self.frame_dict(),
         }
 
-    def strongest_aus(self, n: int = 5, *, bilateral_only: bool = False,
-                      by: str = "intensity") -> list[tuple[str, float]]:
+    def strongest_aus(
+        self, n: int = 5, *, bilateral_only: bool = False, by: str = "intensity"
+    ) -> list[tuple[str, float]]:
         """The ``n`` strongest AUs, strongest first: ``(name, intensity)`` with
         ``by="intensity"`` (:attr:`au_intensities`), ``(name, mm)`` with ``by="motion"``
         (:attr:`au_motion_mm`, the skin motion each AU accounts for), ``(name, intensity)``
         with ``by="sparse"`` (:attr:`au_sparse`, the fewest AUs that reproduce the motion)."""
-        srcs = {"intensity": self.au_intensities, "motion": self.au_motion_mm, "sparse": self.au_sparse}
+        srcs = {
+            "intensity": self.au_intensities,
+            "motion": self.au_motion_mm,
+            "sparse": self.au_sparse,
+        }
         if by not in srcs:
             raise ValueError(f"by must be 'intensity', 'motion' or 'sparse', got {by!r}.")
         src = srcs[by]
-        items = [(k, v) for k, v in src.items()
-                 if not (bilateral_only and k[-1] in "LR")]
+        items = [(k, v) for k, v in src.items() if not (bilateral_only and k[-1] in "LR")]
         return sorted(items, key=lambda kv: -kv[1])[:n]
 
     def write(self, out_dir, *, pictures: bool = False) -> dict[str, Path]:
@@ -581,21 +683,32 @@ class ExpressionFit:
             ("scan", Layer(v, tr)),
             ("before (B0: neutral)", Layer(np.asarray(b0.vertices), sub)),
             ("fit", Layer(fv, sub)),
-            ("fit: distance to scan", Layer(fv, sub, scalars=err, cmap="magma", vmin=0.0, vmax=hi, shade=0.55,
-                                             specular=0.04)),
+            (
+                "fit: distance to scan",
+                Layer(
+                    fv, sub, scalars=err, cmap="magma", vmin=0.0, vmax=hi, shade=0.55, specular=0.04
+                ),
+            ),
         ]
         dpi, px = 100, 360
         fig = Figure(figsize=(len(panels) * px / dpi + 1.0, px / dpi + 0.4), dpi=dpi)
         axes = fig.subplots(1, len(panels), squeeze=False)[0]
-        fig.subplots_adjust(left=0.005, right=1.0 - 1.0 / fig.get_figwidth(), bottom=0.01, top=0.88, wspace=0.02)
+        fig.subplots_adjust(
+            left=0.005, right=1.0 - 1.0 / fig.get_figwidth(), bottom=0.01, top=0.88, wspace=0.02
+        )
         for ax, (name, layer) in zip(axes, panels):
             draw(ax, [layer], "front", width=px, height=px, bounds=bounds, title=name)
-        sm = matplotlib.cm.ScalarMappable(norm=matplotlib.colors.Normalize(0.0, hi), cmap=matplotlib.colormaps["magma"])
+        sm = matplotlib.cm.ScalarMappable(
+            norm=matplotlib.colors.Normalize(0.0, hi), cmap=matplotlib.colormaps["magma"]
+        )
         cax = fig.add_axes([1.0 - 0.8 / fig.get_figwidth(), 0.12, 0.18 / fig.get_figwidth(), 0.7])
         fig.colorbar(sm, cax=cax).set_label("distance to scan (mm)")
         s = self.metrics.scan_to_fit["all"]
-        fig.suptitle(f"{self.stem}: scan-to-fit mean {s.mean:.2f} mm (B0 "
-                     f"{self.baselines['B0'].scan_to_fit['all'].mean:.2f} mm), status {self.status}", fontsize=10)
+        fig.suptitle(
+            f"{self.stem}: scan-to-fit mean {s.mean:.2f} mm (B0 "
+            f"{self.baselines['B0'].scan_to_fit['all'].mean:.2f} mm), status {self.status}",
+            fontsize=10,
+        )
         return save_figure(fig, path)
 
     def _face_mask(self) -> np.ndarray:
@@ -639,7 +752,7 @@ def fit_expressions(
     scan_landmarks: Sequence | None = None,
     progress: Callable[[str], None] | None = None,
     batch_size: int | None = None,
-    on_result: Callable[["ExpressionFit"], None] | None = None,
+    on_result: Callable[[ExpressionFit], None] | None = None,
 ) -> list[ExpressionFit]:
     """Fit a batch of expression scans of the subject.
 
@@ -664,14 +777,14 @@ def fit_expressions(
     Raises:
         LandmarkError: a scan without landmarks; FitError: the fit failed numerically.
     """
+    from .._parallel import thread_map
     from ..anatomy.jaw import JawPose
     from ..facs import au_intensities
-    from .au_motion import au_motion, au_sparse, motion_gram
     from ..io import load_scan
     from ..mesh import TriMesh
     from .align import align_scans
+    from .au_motion import au_motion, au_sparse, motion_gram
     from .baselines import baseline_b0, baseline_b1
-    from .._parallel import thread_map
     from .metrics import fit_metrics
 
     opt = options or FitOptions()
@@ -681,7 +794,11 @@ def fit_expressions(
         if isinstance(s, (str, Path)):
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                lmk = None if scan_landmarks is None or scan_landmarks[i] is None else scan_landmarks[i]
+                lmk = (
+                    None
+                    if scan_landmarks is None or scan_landmarks[i] is None
+                    else scan_landmarks[i]
+                )
                 s = load_scan(s, landmarks=lmk)
         elif scan_landmarks is not None and scan_landmarks[i] is not None:
             s = s.with_landmarks(scan_landmarks[i])
@@ -693,57 +810,111 @@ def fit_expressions(
         loaded.append(s)
     bs = batch_size or max(len(loaded), 1)
     results: list[ExpressionFit] = []
-    gram = motion_gram(subject.response) if loaded else None  # the sparse AU readout's, once per call
+    gram = (
+        motion_gram(subject.response) if loaded else None
+    )  # the sparse AU readout's, once per call
     reg = subject.registration
     tris = subject.triangles
 
     def prepare(s):
         al = align_scans(s, subject.neutral, fixed_index=subject.neutral_index)
-        return al, scan_fit_inputs(subject, s, al.transform, opt.n_points, seed=opt.seed,
-                                   motion_fraction=opt.motion_fraction,
-                                   motion_threshold_mm=opt.motion_threshold_mm)
+        return al, scan_fit_inputs(
+            subject,
+            s,
+            al.transform,
+            opt.n_points,
+            seed=opt.seed,
+            motion_fraction=opt.motion_fraction,
+            motion_threshold_mm=opt.motion_threshold_mm,
+        )
 
     def evaluate(item):
         s, al, f, motion, sparse = item
         Ti = al.transform.inverse()
         fitted = TriMesh(Ti.apply(f.skin), tris, validate=False)
         flm = subject.landmarks_on(fitted.vertices)
-        metrics = fit_metrics(fitted, s, face_mask=reg.face_mask, fitted_landmarks=flm, scan_landmarks=s.landmarks)
+        metrics = fit_metrics(
+            fitted, s, face_mask=reg.face_mask, fitted_landmarks=flm, scan_landmarks=s.landmarks
+        )
         b0m = baseline_b0(reg, al)
         b1m = baseline_b1(reg, s.landmarks, al, neutral_landmarks=subject.neutral.landmarks)
         base = {}
         for name, mesh in (("B0", b0m), ("B1", b1m)):
-            base[name] = fit_metrics(mesh, s, face_mask=reg.face_mask,
-                                     fitted_landmarks=subject.landmarks_on(mesh.vertices), scan_landmarks=s.landmarks)
+            base[name] = fit_metrics(
+                mesh,
+                s,
+                face_mask=reg.face_mask,
+                fitted_landmarks=subject.landmarks_on(mesh.vertices),
+                scan_landmarks=s.landmarks,
+            )
         je = f.jaw_effective
-        aus = au_intensities(f.activations, subject.muscle_names, JawPose(float(je[0]), float(je[1]), float(je[2])))
+        aus = au_intensities(
+            f.activations, subject.muscle_names, JawPose(float(je[0]), float(je[1]), float(je[2]))
+        )
         notes = list(al.notes)
         if f.status != "successful":
-            notes.append(f"the last inner solve ended with '{f.status}' (see solver.outer_iterations)")
+            notes.append(
+                f"the last inner solve ended with '{f.status}' (see solver.outer_iterations)"
+            )
         return ExpressionFit(
-            stem=_stem(s), scan=s, alignment=al, fit=f, fitted=fitted, fitted_landmarks=flm,
-            activations=dict(zip(subject.muscle_names, map(float, f.activations))), au_intensities=aus,
-            au_motion_mm=motion, au_sparse=sparse[0], au_sparse_misfit_mm=sparse[1],
-            metrics=metrics, baselines=base, baseline_meshes={"B0": b0m, "B1": b1m},
-            muscle_names=subject.muscle_names, backend=subject.backend, options=opt, notes=notes,
+            stem=_stem(s),
+            scan=s,
+            alignment=al,
+            fit=f,
+            fitted=fitted,
+            fitted_landmarks=flm,
+            activations=dict(zip(subject.muscle_names, map(float, f.activations))),
+            au_intensities=aus,
+            au_motion_mm=motion,
+            au_sparse=sparse[0],
+            au_sparse_misfit_mm=sparse[1],
+            metrics=metrics,
+            baselines=base,
+            baseline_meshes={"B0": b0m, "B1": b1m},
+            muscle_names=subject.muscle_names,
+            backend=subject.backend,
+            options=opt,
+            notes=notes,
             face_mask=np.asarray(reg.face_mask, bool),
         )
 
     for b0 in range(0, len(loaded), bs):
         batch = loaded[b0 : b0 + bs]
-        say(f"aligning {_stem(batch[0]) if len(batch) == 1 else f'{len(batch)} scans'} to the neutral")
+        say(
+            f"aligning {_stem(batch[0]) if len(batch) == 1 else f'{len(batch)} scans'} to the neutral"
+        )
         # independent per-scan work runs on the outer thread pool (both cores on a 2-core CPU)
         prepared = thread_map(prepare, batch, outer=True)
         aligns = [a for a, _ in prepared]
         inputs = [i for _, i in prepared]
         say(f"fitting {len(batch)} scan(s)")
-        fits = fit_points(subject.forward, subject.response, subject.fit_ids, subject.face_triangles, inputs,
-                          subject.landmark_tri, subject.landmark_bary, opt, progress=say)
+        fits = fit_points(
+            subject.forward,
+            subject.response,
+            subject.fit_ids,
+            subject.face_triangles,
+            inputs,
+            subject.landmark_tri,
+            subject.landmark_bary,
+            opt,
+            progress=say,
+        )
         say(f"evaluating {len(batch)} fit(s) and the baselines")
-        motions = [au_motion(subject.response, f.activations, f.jaw_effective, subject.muscle_names)
-                   for f in fits]      # JAX, on this thread (one compilation per subject)
-        sparse = [au_sparse(subject.response, f.activations, f.jaw_effective, subject.muscle_names,
-                            weight=opt.au_sparse_weight, gram=gram) for f in fits]
+        motions = [
+            au_motion(subject.response, f.activations, f.jaw_effective, subject.muscle_names)
+            for f in fits
+        ]  # JAX, on this thread (one compilation per subject)
+        sparse = [
+            au_sparse(
+                subject.response,
+                f.activations,
+                f.jaw_effective,
+                subject.muscle_names,
+                weight=opt.au_sparse_weight,
+                gram=gram,
+            )
+            for f in fits
+        ]
         for ef in thread_map(evaluate, list(zip(batch, aligns, fits, motions, sparse)), outer=True):
             results.append(ef)
             if on_result is not None:

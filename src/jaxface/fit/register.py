@@ -51,8 +51,9 @@ vertex the distance to the scan surface with a flag telling where the scan has d
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
@@ -138,7 +139,7 @@ class Template:
     name: str = "template"
 
     @classmethod
-    def from_head(cls, head, name: str = "generic_head") -> "Template":
+    def from_head(cls, head, name: str = "generic_head") -> Template:
         """From a :class:`jaxface.head.Head` (or any object with ``mesh``, ``landmarks``,
         ``face_mask``)."""
         return cls(head.mesh, head.landmarks, getattr(head, "face_mask", None), name)
@@ -151,8 +152,12 @@ def _as_template(template, template_landmarks, face_mask) -> Template:
         template = Template.from_head(generic_head())
     elif not isinstance(template, Template):
         if hasattr(template, "mesh") and hasattr(template, "landmarks"):
-            template = Template(template.mesh, template.landmarks, getattr(template, "face_mask", None),
-                                type(template).__name__)
+            template = Template(
+                template.mesh,
+                template.landmarks,
+                getattr(template, "face_mask", None),
+                type(template).__name__,
+            )
         else:
             if template_landmarks is None:
                 raise LandmarkError(
@@ -179,7 +184,9 @@ def vertex_areas(vertices, triangles) -> np.ndarray:
     return np.maximum(a, 1e-3 * max(float(a.mean()), 1e-300))
 
 
-def cotangent_laplacian(vertices, triangles, *, clamp: tuple[float, float] = (0.0, 10.0)) -> sp.csr_matrix:
+def cotangent_laplacian(
+    vertices, triangles, *, clamp: tuple[float, float] = (0.0, 10.0)
+) -> sp.csr_matrix:
     """Cotangent Laplacian ``L`` ``(V, V)`` (positive semi-definite, rows sum to 0):
     ``(L u)_i = sum_j w_ij (u_i - u_j)``, ``w_ij = (cot a + cot b) / 2`` clamped to
     ``clamp`` (dimensionless). Zero-area triangles contribute nothing (NaN-safe)."""
@@ -196,7 +203,9 @@ def cotangent_laplacian(vertices, triangles, *, clamp: tuple[float, float] = (0.
         rows += [i, j]
         cols += [j, i]
         vals += [0.5 * cot, 0.5 * cot]
-    W = sp.coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)).tocsr()
+    W = sp.coo_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)
+    ).tocsr()
     W.data = np.clip(W.data, clamp[0], clamp[1])
     W.eliminate_zeros()
     d = np.asarray(W.sum(axis=1)).ravel()
@@ -268,7 +277,9 @@ class Registration:
             "template": self.template.name,
             "n_vertices": int(len(self.residuals)),
             "residual_mm": self.stats().to_dict(),
-            "coverage": float((self.has_data & self.face_mask).sum() / max(int(self.face_mask.sum()), 1)),
+            "coverage": float(
+                (self.has_data & self.face_mask).sum() / max(int(self.face_mask.sum()), 1)
+            ),
             "labels": list(self.labels),
             "landmark_errors_mm": self.landmark_errors(),
             "history": list(self.history),
@@ -358,10 +369,14 @@ def register_template(
     V = len(tv)
     fmask = np.ones(V, bool) if tpl.face_mask is None else np.asarray(tpl.face_mask, bool)
     if fmask.shape != (V,):
-        raise FitError(f"face_mask must be ({V},) bool over the template vertices, got {fmask.shape}.")
+        raise FitError(
+            f"face_mask must be ({V},) bool over the template vertices, got {fmask.shape}."
+        )
     dmask = np.ones(V, bool) if data_mask is None else np.asarray(data_mask, bool)
     if dmask.shape != (V,):
-        raise FitError(f"data_mask must be ({V},) bool over the template vertices, got {dmask.shape}.")
+        raise FitError(
+            f"data_mask must be ({V},) bool over the template vertices, got {dmask.shape}."
+        )
     index, slm = _scan_index_and_landmarks(scan, scan_landmarks, scan_index)
     tl = landmark_dict(tpl.landmarks)
     sl = landmark_dict(slm)
@@ -370,7 +385,9 @@ def register_template(
         want = list(landmark_dict({n: np.zeros(3) for n in labels}))
         missing = [n for n in want if n not in tl or n not in sl]
         if missing:
-            raise LandmarkError(f"landmarks requested for registration but missing: {missing}.", missing=missing)
+            raise LandmarkError(
+                f"landmarks requested for registration but missing: {missing}.", missing=missing
+            )
     if len(names) < 5:
         raise LandmarkError(
             f"template registration needs at least 5 landmarks present on both the template and "
@@ -389,7 +406,9 @@ def register_template(
     morph = fit_numpy(src_on, dst, kernel="tps", reg=opt.tps_reg)
     X_ref = morph.apply_np(tv)
     if not np.all(np.isfinite(X_ref)):
-        raise FitError("the landmark TPS produced non-finite vertices; check the landmarks for duplicates.")
+        raise FitError(
+            "the landmark TPS produced non-finite vertices; check the landmarks for duplicates."
+        )
 
     # 2) Laplacian-regularised non-rigid ICP
     area = vertex_areas(X_ref, tf)
@@ -404,14 +423,16 @@ def register_template(
     scan_used = np.unique(index.triangles[index.active_ids])
     # active vertices: near the scan after the TPS; the others keep the TPS result (D = 0),
     # and the bending term blends the two smoothly
-    near, _ = cKDTree(index.vertices[scan_used]).query(X_ref, distance_upper_bound=opt.active_margin_mm)
+    near, _ = cKDTree(index.vertices[scan_used]).query(
+        X_ref, distance_upper_bound=opt.active_margin_mm
+    )
     active = np.isfinite(near)
     active[tf[l_tri].ravel()] = True
     act = np.flatnonzero(active)
     K_a = K[act][:, act]
     B_a = B[:, act].tocsc()
     BtB_a = (B_a.T @ B_a).tocsc()
-    lm_rhs = (B_a.T @ (dst - B @ X_ref))
+    lm_rhs = B_a.T @ (dst - B @ X_ref)
     area_a = area[act]
     data_ids = np.flatnonzero(dmask & active)
     if opt.reverse_weight > 0:
@@ -435,7 +456,11 @@ def register_template(
         tau = float(np.clip(2.0 * ell, opt.min_distance_mm, opt.max_distance_mm))
         cp = index.query(X[data_ids], max_distance=tau, exact=False)
         nrm = _vertex_normals(X, tf)[data_ids]
-        ok = (cp.distances <= tau) & ~cp.on_boundary & (np.einsum("ij,ij->i", nrm, cp.normals) >= cos_max)
+        ok = (
+            (cp.distances <= tau)
+            & ~cp.on_boundary
+            & (np.einsum("ij,ij->i", nrm, cp.normals) >= cos_max)
+        )
         if not ok.any():
             raise FitError(
                 "no template vertex found a compatible scan point after the landmark warp; the "
@@ -448,7 +473,9 @@ def register_template(
         mu = opt.final_landmark_weight_mm2 if ell == ell_last else opt.landmark_weight_mm2
         aw = (area * w)[act]
         A = sp.diags(aw + opt.damping * area_a) + (ell**4) * K_a + mu * BtB_a
-        rhs = aw[:, None] * (C - X_ref)[act] + mu * lm_rhs + (opt.damping * area_a)[:, None] * D[act]
+        rhs = (
+            aw[:, None] * (C - X_ref)[act] + mu * lm_rhs + (opt.damping * area_a)[:, None] * D[act]
+        )
         n_rev = 0
         if opt.reverse_weight > 0:
             # scan points -> their closest points on the current template surface
@@ -459,7 +486,10 @@ def register_template(
             if rok.any():
                 r_ids = np.flatnonzero(rok)
                 Bs = sp.csr_matrix(
-                    (rq.bary[r_ids].ravel(), (np.repeat(np.arange(r_ids.size), 3), tf[rq.triangles[r_ids]].ravel())),
+                    (
+                        rq.bary[r_ids].ravel(),
+                        (np.repeat(np.arange(r_ids.size), 3), tf[rq.triangles[r_ids]].ravel()),
+                    ),
                     shape=(r_ids.size, V),
                 )
                 Bs_a = Bs[:, act]
@@ -471,7 +501,9 @@ def register_template(
             lu = spla.splu(A.tocsc(), permc_spec="COLAMD")
             D_a = lu.solve(np.ascontiguousarray(rhs))
         except RuntimeError as e:  # singular factor
-            raise FitError(f"the registration system is singular at smoothing {ell} mm ({e}).") from None
+            raise FitError(
+                f"the registration system is singular at smoothing {ell} mm ({e})."
+            ) from None
         if not np.all(np.isfinite(D_a)):
             raise FitError(f"the registration solve produced NaN/inf at smoothing {ell} mm.")
         D = np.zeros_like(X_ref)

@@ -104,8 +104,9 @@ import dataclasses
 import functools
 import threading
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Callable, Sequence
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -114,11 +115,11 @@ import lineax as lx
 import numpy as np
 import optimistix as optx
 
+from .._arrays import to_jax
+from .._parallel import thread_map
 from ..errors import FitError
 from .au_motion import AU_SPARSE_WEIGHT
 from .metrics import SurfaceIndex
-from .._arrays import to_jax
-from .._parallel import thread_map
 
 __all__ = [
     "FitOptions",
@@ -326,15 +327,22 @@ class FitOptions:
     def __post_init__(self):
         w = float(self.au_sparse_weight)
         if not (np.isfinite(w) and w >= 0.0):
-            raise ValueError(f"FitOptions.au_sparse_weight must be a finite number >= 0 (mm^2 per unit "
-                             f"intensity), got {self.au_sparse_weight!r}.")
+            raise ValueError(
+                f"FitOptions.au_sparse_weight must be a finite number >= 0 (mm^2 per unit "
+                f"intensity), got {self.au_sparse_weight!r}."
+            )
         if not 0.0 <= float(self.motion_fraction) <= 1.0:
-            raise ValueError(f"FitOptions.motion_fraction must lie in [0, 1], got {self.motion_fraction!r}.")
+            raise ValueError(
+                f"FitOptions.motion_fraction must lie in [0, 1], got {self.motion_fraction!r}."
+            )
         if not float(self.motion_threshold_mm) >= 0.0:
-            raise ValueError(f"FitOptions.motion_threshold_mm must be >= 0 mm, got {self.motion_threshold_mm!r}.")
+            raise ValueError(
+                f"FitOptions.motion_threshold_mm must be >= 0 mm, got {self.motion_threshold_mm!r}."
+            )
         if self.restart_when not in RESTART_WHEN:
-            raise ValueError(f"FitOptions.restart_when must be one of {RESTART_WHEN}, got "
-                             f"{self.restart_when!r}.")
+            raise ValueError(
+                f"FitOptions.restart_when must be one of {RESTART_WHEN}, got {self.restart_when!r}."
+            )
 
     def anneal(self, pair: tuple[float, float], k: int) -> float:
         """Value of an annealed ``(first, last)`` setting at outer iteration ``k``
@@ -469,15 +477,19 @@ class ForwardModel:
         A = np.asarray(A, np.float64).reshape(-1, self.n_controls)
         J = np.asarray(J, np.float64).reshape(-1, 3)
         if len(A) != len(J):
-            raise FitError(f"many() needs one jaw pose per activation row; got {len(J)} jaw poses for "
-                           f"{len(A)} rows.")
+            raise FitError(
+                f"many() needs one jaw pose per activation row; got {len(J)} jaw poses for "
+                f"{len(A)} rows."
+            )
         dt = jnp.result_type(float)  # float64 when x64 is enabled, else float32
         out = np.zeros((len(A), len(self.rest), 3))
         step = max(self.chunk, 1)
         for s in range(0, len(A), step):
             # dispatch a chunk asynchronously, then collect it
-            pending = [self._one(jnp.asarray(a, dt), jnp.asarray(j, dt))
-                       for a, j in zip(A[s : s + step], J[s : s + step])]
+            pending = [
+                self._one(jnp.asarray(a, dt), jnp.asarray(j, dt))
+                for a, j in zip(A[s : s + step], J[s : s + step])
+            ]
             for n, x in enumerate(pending):
                 out[s + n] = np.asarray(x)
             self._count(len(pending))
@@ -503,10 +515,24 @@ def _hermite_basis(x, knots):
     above = (x > t[-1]).astype(x.dtype)
     inside = 1.0 - below - above
     e = x - xc  # linear continuation beyond the ends
-    w = jnp.stack([2 * u3 - 3 * u2 + 1, -2 * u3 + 3 * u2, (u3 - 2 * u2 + u) * h + e * below,
-                   (u3 - u2) * h + e * above], axis=1)
-    dw = jnp.stack([(6 * u2 - 6 * u) / h * inside, (-6 * u2 + 6 * u) / h * inside,
-                    (3 * u2 - 4 * u + 1) * inside + below, (3 * u2 - 2 * u) * inside + above], axis=1)
+    w = jnp.stack(
+        [
+            2 * u3 - 3 * u2 + 1,
+            -2 * u3 + 3 * u2,
+            (u3 - 2 * u2 + u) * h + e * below,
+            (u3 - u2) * h + e * above,
+        ],
+        axis=1,
+    )
+    dw = jnp.stack(
+        [
+            (6 * u2 - 6 * u) / h * inside,
+            (-6 * u2 + 6 * u) / h * inside,
+            (3 * u2 - 4 * u + 1) * inside + below,
+            (3 * u2 - 2 * u) * inside + above,
+        ],
+        axis=1,
+    )
     return s, w, dw
 
 
@@ -519,10 +545,18 @@ def _hermite_parts(x, knots, values, slopes):
     Y1 = jnp.take_along_axis(values, idx + 1, axis=1)[:, 0]
     m0 = jnp.take_along_axis(slopes, idx, axis=1)[:, 0]
     m1 = jnp.take_along_axis(slopes, idx + 1, axis=1)[:, 0]
-    val = (jnp.einsum("m,mkd->kd", w[:, 0], Y0) + jnp.einsum("m,mkd->kd", w[:, 1], Y1)
-           + jnp.einsum("m,mkd->kd", w[:, 2], m0) + jnp.einsum("m,mkd->kd", w[:, 3], m1))
-    D = (dw[:, 0, None, None] * Y0 + dw[:, 1, None, None] * Y1 + dw[:, 2, None, None] * m0
-         + dw[:, 3, None, None] * m1)
+    val = (
+        jnp.einsum("m,mkd->kd", w[:, 0], Y0)
+        + jnp.einsum("m,mkd->kd", w[:, 1], Y1)
+        + jnp.einsum("m,mkd->kd", w[:, 2], m0)
+        + jnp.einsum("m,mkd->kd", w[:, 3], m1)
+    )
+    D = (
+        dw[:, 0, None, None] * Y0
+        + dw[:, 1, None, None] * Y1
+        + dw[:, 2, None, None] * m0
+        + dw[:, 3, None, None] * m1
+    )
     return val, D
 
 
@@ -636,8 +670,12 @@ class ResponseModel(eqx.Module):
         deg, yaw deg, protrusion mm, before the smooth clamp)."""
         j = self.clamp_jaw(jaw)
         nj, nf, P = self.jaw_tab.shape[:3]
-        F = hermite_sum(j[:1], self.pitch, self.jaw_tab.reshape(1, nj, nf * P, 3),
-                        self.jaw_slope.reshape(1, nj, nf * P, 3)).reshape(nf, P, 3)
+        F = hermite_sum(
+            j[:1],
+            self.pitch,
+            self.jaw_tab.reshape(1, nj, nf * P, 3),
+            self.jaw_slope.reshape(1, nj, nf * P, 3),
+        ).reshape(nf, P, 3)
         y, q = j[1], j[2]
         return F[0] + y * F[1] + (0.5 * y * y) * F[2] + q * F[3] + (0.5 * q * q) * F[4]
 
@@ -658,13 +696,16 @@ class ResponseModel(eqx.Module):
         s0, w0, _ = _hermite_basis(jnp.zeros_like(values), self.levels)
 
         def spline(seg, wt):
-            return (wt[:, 0, None, None] * self.mus[muscles, seg] + wt[:, 1, None, None] * self.mus[muscles, seg + 1]
-                    + wt[:, 2, None, None] * self.mus_slope[muscles, seg]
-                    + wt[:, 3, None, None] * self.mus_slope[muscles, seg + 1])
+            return (
+                wt[:, 0, None, None] * self.mus[muscles, seg]
+                + wt[:, 1, None, None] * self.mus[muscles, seg + 1]
+                + wt[:, 2, None, None] * self.mus_slope[muscles, seg]
+                + wt[:, 3, None, None] * self.mus_slope[muscles, seg + 1]
+            )
 
         return spline(s, w) - spline(s0, w0)
 
-    def gather(self, ids, bary) -> "ResponseModel":
+    def gather(self, ids, bary) -> ResponseModel:
         """The model at surface points: ``ids`` ``(K, 3)`` local point ids of triangle
         corners, ``bary`` ``(K, 3)`` barycentrics. Returns a :class:`ResponseModel` over
         the ``K`` points."""
@@ -767,8 +808,10 @@ def build_response_model(
             progress(min(s + step, total), total)
     if not np.all(np.isfinite(out)):
         bad = np.flatnonzero(~np.isfinite(out).all(axis=(1, 2)))
-        raise FitError(f"the rig produced NaN/inf in {bad.size} of {total} syntheses (first rows "
-                       f"{bad[:5].tolist()}); the reduced model cannot be built.")
+        raise FitError(
+            f"the rig produced NaN/inf in {bad.size} of {total} syntheses (first rows "
+            f"{bad[:5].tolist()}); the reduced model cannot be built."
+        )
     rest = rest_all[ids]
     nl = len(lv)
     mus = np.zeros((M, nl, len(ids), 3))
@@ -867,9 +910,11 @@ def make_priors(muscle_names: Sequence[str], options: FitOptions) -> Priors:
     names = list(muscle_names)
     tau = float(options.symmetry_scale)
     if not (np.isfinite(tau) and tau > 0.0):
-        raise ValueError(f"FitOptions.symmetry_scale must be a positive number (unit activation), got "
-                         f"{options.symmetry_scale!r}; use a large value (e.g. 1e3) for the plain "
-                         "quadratic symmetry prior")
+        raise ValueError(
+            f"FitOptions.symmetry_scale must be a positive number (unit activation), got "
+            f"{options.symmetry_scale!r}; use a large value (e.g. 1e3) for the plain "
+            "quadratic symmetry prior"
+        )
     left, right = [], []
     for i, n in enumerate(names):
         if n.endswith("_L") and n[:-2] + "_R" in names:
@@ -923,14 +968,14 @@ def _data_jacobian(a, jaw, rigid, pts: PointSet, use_rigid: bool):
     (2.9 ms against 1.3-2.0 ms per Jacobian on the shared subjects' rigs, ``bench_fit.py``'s
     ``timing.jacobian``)."""
     model = pts.model
-    val, D = _hermite_parts(a, model.levels, model.mus, model.mus_slope)        # (P, 3), (M, P, 3)
+    val, D = _hermite_parts(a, model.levels, model.mus, model.mus_slope)  # (P, 3), (M, P, 3)
     xj = model.jaw_displacement(jaw)
-    Jj = jax.jacfwd(model.jaw_displacement)(jaw)                                 # (P, 3, 3)
+    Jj = jax.jacfwd(model.jaw_displacement)(jaw)  # (P, 3, 3)
     x = model.rest + val + xj + pts.defect
-    dx = jnp.concatenate([jnp.moveaxis(D, 0, 2), Jj], axis=2)                   # (P, 3, M + 3)
+    dx = jnp.concatenate([jnp.moveaxis(D, 0, 2), Jj], axis=2)  # (P, 3, M + 3)
     if use_rigid:
         R = rotation_from_rotvec_deg(rigid[:3])
-        Jr = jax.jacfwd(lambda w: apply_rigid(w, pts.centre, x))(rigid)          # (P, 3, 6)
+        Jr = jax.jacfwd(lambda w: apply_rigid(w, pts.centre, x))(rigid)  # (P, 3, 6)
         x = apply_rigid(rigid, pts.centre, x)
         dx = jnp.concatenate([jnp.einsum("ij,pjn->pin", R, dx), Jr], axis=2)
     K = pts.normal.shape[0]
@@ -1041,14 +1086,14 @@ def gradient_correction_from_vjp(skin, skin_vjp, fit_ids, y, pts: PointSet, use_
         return jnp.concatenate([r_pt, r_lm.ravel()])
 
     def reduced(p):
-        return data_of_points(pts.model(p[: a.shape[0]], p[a.shape[0]:]) + pts.defect)
+        return data_of_points(pts.model(p[: a.shape[0]], p[a.shape[0] :]) + pts.defect)
 
     r, vjp_x = jax.vjp(lambda xv: data_of_points(_points_from_vertices(xv[fit_ids], pts)), skin)
     _, vjp_r = jax.vjp(reduced, p0)
-    ct, = vjp_x(r)
+    (ct,) = vjp_x(r)
     g_a, g_j = skin_vjp(ct)
     g_e = jnp.concatenate([g_a, g_j])
-    g_r, = vjp_r(r)
+    (g_r,) = vjp_r(r)
     rr = jnp.sum(r * r)
     # no correction where the reverse pass through the rig is not finite (seen once, in
     # float32 at a wide jaw opening): the inner solve then has the reduced gradient
@@ -1122,12 +1167,24 @@ def _linear_solver(dtype) -> lx.AbstractLinearSolver:
 
 
 def _solve_one(y0, pts, pri, *, max_steps, rtol, atol):
-    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=_linear_solver(y0["z"].dtype))
-    sol = optx.least_squares(residuals, solver, y0, args=(pts, pri), max_steps=max_steps, throw=False)
+    solver = optx.LevenbergMarquardt(
+        rtol=rtol, atol=atol, linear_solver=_linear_solver(y0["z"].dtype)
+    )
+    sol = optx.least_squares(
+        residuals, solver, y0, args=(pts, pri), max_steps=max_steps, throw=False
+    )
     y = sol.value
     a = activations_from_z(effective_z(y, pts))
     g = jax.grad(_cost_of_activations)(a, y, pts, pri)
-    return y, sol.result._value, sol.stats["num_steps"], _cost(y, (pts, pri)), _cost(y0, (pts, pri)), a, g
+    return (
+        y,
+        sol.result._value,
+        sol.stats["num_steps"],
+        _cost(y, (pts, pri)),
+        _cost(y0, (pts, pri)),
+        a,
+        g,
+    )
 
 
 def batch_mode() -> str:
@@ -1171,8 +1228,15 @@ def _pad_leading(tree, n: int, size: int):
     return jax.tree_util.tree_map(pad, tree)
 
 
-def solve_inner(y0, points: PointSet, priors: Priors, options: FitOptions, *, mode: str | None = None,
-                pad_to: int | None = None):
+def solve_inner(
+    y0,
+    points: PointSet,
+    priors: Priors,
+    options: FitOptions,
+    *,
+    mode: str | None = None,
+    pad_to: int | None = None,
+):
     """Batched Levenberg-Marquardt solves over the leading axis of ``y0`` and ``points``,
     ``throw=False``.
 
@@ -1206,13 +1270,18 @@ def solve_inner(y0, points: PointSet, priors: Priors, options: FitOptions, *, mo
     n = int(np.shape(jax.tree_util.tree_leaves(y0)[0])[0])
     if mode == "map":
         # one solve per thread of the pool: a solve's small kernels keep one core busy
-        outs = thread_map(lambda b: jax.block_until_ready(fn(_index(y0, b), _index(points, b), priors)),
-                          range(n), outer=True)
+        outs = thread_map(
+            lambda b: jax.block_until_ready(fn(_index(y0, b), _index(points, b), priors)),
+            range(n),
+            outer=True,
+        )
         y = _stack([o[0] for o in outs])
         rest = [np.stack([np.asarray(o[k]) for o in outs]) for k in range(1, 7)]
         return (y, *rest)
     size = padded_batch_size(max(n, int(pad_to or 0)))
-    y, res, steps, cost, cost0, a, g = fn(_pad_leading(y0, n, size), _pad_leading(points, n, size), priors)
+    y, res, steps, cost, cost0, a, g = fn(
+        _pad_leading(y0, n, size), _pad_leading(points, n, size), priors
+    )
     if size != n:
         y = _index(y, slice(0, n))
     return (y, *(np.asarray(v)[:n] for v in (res, steps, cost, cost0, a, g)))
@@ -1227,8 +1296,9 @@ def result_name(code: int) -> str:
     return f"unknown({int(code)})"
 
 
-def update_active_set(a, grad, free, z_fixed, *, tol_a: float = 1e-2, tol_g: float = 1e-4,
-                      locked=None, keep=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+def update_active_set(
+    a, grad, free, z_fixed, *, tol_a: float = 1e-2, tol_g: float = 1e-4, locked=None, keep=None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """Active-set update of the activation bounds (NumPy, one scan).
 
     A free activation within ``tol_a`` of a bound whose cost gradient pushes it outward by
@@ -1451,7 +1521,9 @@ def _stack(trees):
 def _index(tree, i):
     """Entry (or slice) ``i`` of the leading axis of every array leaf of ``tree`` (on the
     host, see :func:`_stack`)."""
-    return jax.tree_util.tree_map(lambda x: to_jax(np.asarray(x)[i]) if eqx.is_array(x) else x, tree)
+    return jax.tree_util.tree_map(
+        lambda x: to_jax(np.asarray(x)[i]) if eqx.is_array(x) else x, tree
+    )
 
 
 def _y0(M: int, options: FitOptions, pitch: float):
@@ -1539,26 +1611,32 @@ def fit_points(
     if opt.controls is not None:
         unknown = [c for c in opt.controls if c not in names]
         if unknown:
-            raise FitError(f"FitOptions.controls names unknown controls {unknown}; the rig has {names}.")
+            raise FitError(
+                f"FitOptions.controls names unknown controls {unknown}; the rig has {names}."
+            )
         locked |= ~np.isin(names, list(opt.controls))
     for c in opt.controls or ():
         if locked[names.index(c)]:
-            raise FitError(f"control {c!r} is to be fitted but the reduced model did not sample it "
-                           "(build_response_model(controls=...)).")
+            raise FitError(
+                f"control {c!r} is to be fitted but the reduced model did not sample it "
+                "(build_response_model(controls=...))."
+            )
     centre = np.asarray(response.rest).mean(axis=0)
     priors = make_priors(names, opt)
     S = len(scans)
     # runs: (scan index, start pitch), all solved in one batched call (solve_inner)
     if opt.jaw_starts is None:
-        runs = [(s, _landmark_pitch(response, lm_loc, landmark_bary, sc)) for s, sc in enumerate(scans)]
+        runs = [
+            (s, _landmark_pitch(response, lm_loc, landmark_bary, sc)) for s, sc in enumerate(scans)
+        ]
     else:
         runs = [(s, float(p)) for s in range(S) for p in (list(opt.jaw_starts) or [0.0])]
     R_ = len(runs)
     ys = [_y0(M, opt, p) for _, p in runs]
     free = [np.where(locked, 0.0, 1.0) for _ in runs]
     zfix = [np.zeros(M) for _ in runs]
-    released = [np.zeros(M, bool) for _ in runs]   # held once, then released
-    cycled = [np.zeros(M, bool) for _ in runs]     # ... and held again: kept at its bound
+    released = [np.zeros(M, bool) for _ in runs]  # held once, then released
+    cycled = [np.zeros(M, bool) for _ in runs]  # ... and held again: kept at its bound
     for i in range(R_):
         z = np.asarray(ys[i]["z"]).copy()
         z[locked] = 0.0
@@ -1566,7 +1644,7 @@ def fit_points(
     reports: dict[int, list[InnerReport]] = {i: [] for i in range(R_)}
     last_pts: dict[int, PointSet] = {}
     last_changes = [0] * R_
-    parent = list(range(R_))          # the run a restart run was spawned from (itself if none)
+    parent = list(range(R_))  # the run a restart run was spawned from (itself if none)
     flipped: dict[int, tuple[int, ...]] = {}
 
     def z_of(i):
@@ -1599,8 +1677,15 @@ def fit_points(
     def corr_for(run, skin, k):
         sc = scans[runs[run][0]]
         return find_correspondences(
-            skin, tris, face_triangles, local, sc["points"], sc.get("normals"), sc["valid"],
-            max_distance=opt.anneal(opt.max_distance_mm, k), robust_floor=opt.anneal(opt.robust_floor_mm, k),
+            skin,
+            tris,
+            face_triangles,
+            local,
+            sc["points"],
+            sc.get("normals"),
+            sc["valid"],
+            max_distance=opt.anneal(opt.max_distance_mm, k),
+            robust_floor=opt.anneal(opt.robust_floor_mm, k),
             max_normal_angle_deg=opt.max_normal_angle_deg,
         )
 
@@ -1635,14 +1720,24 @@ def fit_points(
             target = np.concatenate([c.target, np.asarray(sc["landmarks"], np.float64)])
             target = np.where(np.isfinite(target), target, 0.0)
             pts = PointSet(
-                model=gm, defect=to_jax(dfx), target=to_jax(target), normal=to_jax(c.normal),
-                w_point=to_jax(c.weight), w_landmark=to_jax(lw), centre=to_jax(centre),
-                ids=to_jax(ids), bary=to_jax(bary), free=to_jax(free[i]),
+                model=gm,
+                defect=to_jax(dfx),
+                target=to_jax(target),
+                normal=to_jax(c.normal),
+                w_point=to_jax(c.weight),
+                w_landmark=to_jax(lw),
+                centre=to_jax(centre),
+                ids=to_jax(ids),
+                bary=to_jax(bary),
+                free=to_jax(free[i]),
                 z_fixed=to_jax(zfix[i]),
             )
             if opt.gradient_correction:
                 u, p0, r0 = jax.block_until_ready(
-                    _gradient_correction_vjp_jit(x_j, vjp_n, fit_ids_j, ys[i], pts, priors.use_rigid))
+                    _gradient_correction_vjp_jit(
+                        x_j, vjp_n, fit_ids_j, ys[i], pts, priors.use_rigid
+                    )
+                )
                 del vjp_n  # its residuals (one state per sweep) are freed here
                 pts = dataclasses.replace(pts, grad_u=u, grad_p=p0, grad_r=r0)
             return pts, c
@@ -1668,9 +1763,13 @@ def fit_points(
             # scan's fit does not depend on the batch it is in
             # on an accelerator every solve of this fit is padded to the batch size of all its
             # runs, so the subsets that go on compile nothing new
-            Y, res, steps, cost, cost0, acts, grads = solve_inner(Y0, P, priors, opt, pad_to=len(runs))
+            Y, res, steps, cost, cost0, acts, grads = solve_inner(
+                Y0, P, priors, opt, pad_to=len(runs)
+            )
             cost0_first = cost0 if cost0_first is None else cost0_first
-            flat = np.concatenate([np.asarray(v).reshape(n_act, -1) for v in jax.tree_util.tree_leaves(Y)], axis=1)
+            flat = np.concatenate(
+                [np.asarray(v).reshape(n_act, -1) for v in jax.tree_util.tree_leaves(Y)], axis=1
+            )
             for n, i in enumerate(act):
                 if not settled[n] and not np.all(np.isfinite(flat[n])):
                     raise FitError(
@@ -1683,8 +1782,15 @@ def fit_points(
                 tot_steps[n] += steps[n]
                 res_k[n], cost_k[n] = res[n], cost[n]
                 yi = dict(_index(Y, n))
-                f_new, zf_new, z_start, n_ch = update_active_set(acts[n], grads[n], free[i], zfix[i], locked=locked,
-                                                                 tol_g=opt.release_gradient, keep=cycled[i])
+                f_new, zf_new, z_start, n_ch = update_active_set(
+                    acts[n],
+                    grads[n],
+                    free[i],
+                    zfix[i],
+                    locked=locked,
+                    tol_g=opt.release_gradient,
+                    keep=cycled[i],
+                )
                 # anti-cycling: released before and held again -> stays held
                 cycled[i] |= released[i] & (free[i] > 0) & (f_new == 0)
                 released[i] |= (free[i] == 0) & (f_new > 0)
@@ -1698,16 +1804,32 @@ def fit_points(
                 settled[n] = n_ch == 0
             if settled.all():
                 break
-            P = eqx.tree_at(lambda p: (p.free, p.z_fixed), P,
-                            (to_jax(np.stack([free[i] for i in act])), to_jax(np.stack([zfix[i] for i in act]))))
+            P = eqx.tree_at(
+                lambda p: (p.free, p.z_fixed),
+                P,
+                (
+                    to_jax(np.stack([free[i] for i in act])),
+                    to_jax(np.stack([zfix[i] for i in act])),
+                ),
+            )
             Y0 = _stack([ys[i] for i in act])
         dt = time.perf_counter() - t_it
         for n, i in enumerate(act):
             last_changes[i] = int(changes[n])
-            reports[i].append(InnerReport(len(reports[i]), result_name(res_k[n]), int(tot_steps[n]),
-                                          float(cost0_first[n]), float(cost_k[n]), corrs[n].n_accepted,
-                                          corrs[n].scale_mm, int(changes[n]),
-                                          int(np.sum((free[i] == 0) & ~locked)), dt))
+            reports[i].append(
+                InnerReport(
+                    len(reports[i]),
+                    result_name(res_k[n]),
+                    int(tot_steps[n]),
+                    float(cost0_first[n]),
+                    float(cost_k[n]),
+                    corrs[n].n_accepted,
+                    corrs[n].scale_mm,
+                    int(changes[n]),
+                    int(np.sum((free[i] == 0) & ~locked)),
+                    dt,
+                )
+            )
             last_pts[i] = _index(P, n)
         return cost_k
 
@@ -1727,16 +1849,26 @@ def fit_points(
             a1, j1 = params_of(i)
             rp = reports[i][-1]
             gain = (rp.cost0 - rp.cost) / max(rp.cost0, 1e-300)
-            move.append(bool((np.max(np.abs(a1 - a0), initial=0.0) > opt.converge_activation
-                              or np.max(np.abs(j1 - j0)) > opt.converge_jaw) and gain > opt.converge_cost)
-                        or last_changes[i] > 0 or rp.result == "nonlinear_max_steps_reached")
+            move.append(
+                bool(
+                    (
+                        np.max(np.abs(a1 - a0), initial=0.0) > opt.converge_activation
+                        or np.max(np.abs(j1 - j0)) > opt.converge_jaw
+                    )
+                    and gain > opt.converge_cost
+                )
+                or last_changes[i] > 0
+                or rp.result == "nonlinear_max_steps_reached"
+            )
         return cost, np.asarray(move, bool)
 
     for k in range(outer):
         cost, moving = step_and_track(k, list(range(R_)))
         if progress is not None:
             steps = max(reports[i][-1].steps for i in range(R_))
-            progress(f"outer iteration {k + 1}/{outer}: cost {np.mean(cost):.4f} mm^2, steps {steps}")
+            progress(
+                f"outer iteration {k + 1}/{outer}: cost {np.mean(cost):.4f} mm^2, steps {steps}"
+            )
 
     def converge(unconverged: set) -> set:
         """Runs still converging go on at the final annealing, each until it stops; returns
@@ -1748,8 +1880,10 @@ def fit_points(
             cost, mv = step_and_track(outer - 1, act)
             unconverged = {i for i, m in zip(act, mv) if m}
             if progress is not None:
-                progress(f"extra iteration {r + 1}/{opt.extra_iterations} ({len(act)} runs still "
-                         f"converging): cost {np.mean(cost):.4f} mm^2")
+                progress(
+                    f"extra iteration {r + 1}/{opt.extra_iterations} ({len(act)} runs still "
+                    f"converging): cost {np.mean(cost):.4f} mm^2"
+                )
         return unconverged
 
     unconverged = converge({i for i in range(R_) if moving[i]})
@@ -1770,7 +1904,7 @@ def fit_points(
     spawned = []
     if n_restart:
         for i in range(R_):
-            z = z_of(i)   # locked controls are held at z = 0
+            z = z_of(i)  # locked controls are held at z = 0
             hi = (np.asarray(activations_from_z(to_jax(z))) >= 1.0 - RESTART_BOUND_TOL) & ~locked
             if not _should_restart(opt.restart_when, bool(hi.any()), status_of(i) == "successful"):
                 continue
@@ -1793,14 +1927,18 @@ def fit_points(
         for r in range(n_restart if spawned else 0):
             cost, mv = step_and_track(outer + r, spawned)
             if progress is not None:
-                progress(f"restart iteration {r + 1}/{n_restart} ({len(spawned)} runs with activations at 1): "
-                         f"cost {np.mean(cost):.4f} mm^2")
+                progress(
+                    f"restart iteration {r + 1}/{n_restart} ({len(spawned)} runs with activations at 1): "
+                    f"cost {np.mean(cost):.4f} mm^2"
+                )
         unconverged |= converge({j for j, m in zip(spawned, mv) if m})
     R_all = len(runs)
 
     if opt.exact_steps > 0:
         for i in range(R_all):
-            ys[i] = _exact_refine(forward, fit_ids, ys[i], last_pts[i], priors, opt, reports[i], len(reports[i]))
+            ys[i] = _exact_refine(
+                forward, fit_ids, ys[i], last_pts[i], priors, opt, reports[i], len(reports[i])
+            )
     Xr, skins, A = exact_skins(list(range(R_all)))
     total = time.perf_counter() - t0
     finals = []
@@ -1820,8 +1958,12 @@ def fit_points(
         restart = {}
         for j in cand:
             if parent[j] != j:
-                restart = {"controls": [names[m] for m in flipped[j]], "cost_mm2": finals[j][1],
-                           "parent_cost_mm2": finals[parent[j]][1], "kept": bool(i == j)}
+                restart = {
+                    "controls": [names[m] for m in flipped[j]],
+                    "cost_mm2": finals[j][1],
+                    "parent_cost_mm2": finals[parent[j]][1],
+                    "kept": bool(i == j),
+                }
         results.append(
             PointFit(
                 activations=np.asarray(A[i]),
@@ -1836,12 +1978,18 @@ def fit_points(
                 steps=int(sum(r.steps for r in reports[i])),
                 seconds=total / max(S, 1),
                 start_pitch=float(runs[i][1]),
-                residual_mm={"mean": float(d.mean()), "median": float(np.median(d)),
-                             "rms": float(np.sqrt(np.mean(d * d))), "n": int(ok.sum()),
-                             "weighted_cost_mm2": finals[i][1]},
+                residual_mm={
+                    "mean": float(d.mean()),
+                    "median": float(np.median(d)),
+                    "rms": float(np.sqrt(np.mean(d * d))),
+                    "n": int(ok.sum()),
+                    "weighted_cost_mm2": finals[i][1],
+                },
                 points=last_pts[i],
                 starts={float(runs[j][1]): finals[j][1] for j in cand if parent[j] == j},
-                at_bounds={int(m): float(zfix[i][m]) for m in range(M) if free[i][m] == 0 and not locked[m]},
+                at_bounds={
+                    int(m): float(zfix[i][m]) for m in range(M) if free[i][m] == 0 and not locked[m]
+                },
                 restart=restart,
             )
         )
@@ -1856,7 +2004,9 @@ def _points_from_vertices(xv, pts: PointSet):
     return jnp.einsum("kc,kcd->kd", pts.bary, xv[pts.ids])
 
 
-def _exact_refine(forward, fit_ids, y, pts: PointSet, priors: Priors, opt: FitOptions, reports, outer):
+def _exact_refine(
+    forward, fit_ids, y, pts: PointSet, priors: Priors, opt: FitOptions, reports, outer
+):
     """Levenberg-Marquardt through the exact rig (forward-mode Jacobian of the PBD solve)
     with the last correspondences and active set."""
     t0 = time.perf_counter()
@@ -1873,19 +2023,34 @@ def _exact_refine(forward, fit_ids, y, pts: PointSet, priors: Priors, opt: FitOp
         out["points"], out["landmarks"] = _point_residuals(x, pts_)
         return out
 
-    cost = jax.jit(lambda yy, args: sum(jnp.sum(v * v) for v in jax.tree_util.tree_leaves(resid(yy, args))))
+    cost = jax.jit(
+        lambda yy, args: sum(jnp.sum(v * v) for v in jax.tree_util.tree_leaves(resid(yy, args)))
+    )
     solver = optx.LevenbergMarquardt(rtol=opt.rtol, atol=opt.atol)
     c0 = float(cost(y, (pts, priors)))
 
     def run(y0, args):
-        sol = optx.least_squares(resid, solver, y0, args=args, max_steps=int(opt.exact_steps), throw=False)
-        return sol.value, sol.result._value, sol.stats["num_steps"]   # arrays only out of the jit
+        sol = optx.least_squares(
+            resid, solver, y0, args=args, max_steps=int(opt.exact_steps), throw=False
+        )
+        return sol.value, sol.result._value, sol.stats["num_steps"]  # arrays only out of the jit
 
     yv, code, n_steps = jax.jit(run)(y, (pts, priors))
     c1 = float(cost(yv, (pts, priors)))
-    reports.append(InnerReport(outer, "exact:" + result_name(int(code)), int(n_steps),
-                               c0, c1, int(np.sum(np.asarray(pts.w_point) > 0)), float("nan"), 0,
-                               int(np.sum(np.asarray(pts.free) == 0)), time.perf_counter() - t0))
+    reports.append(
+        InnerReport(
+            outer,
+            "exact:" + result_name(int(code)),
+            int(n_steps),
+            c0,
+            c1,
+            int(np.sum(np.asarray(pts.w_point) > 0)),
+            float("nan"),
+            0,
+            int(np.sum(np.asarray(pts.free) == 0)),
+            time.perf_counter() - t0,
+        )
+    )
     return yv
 
 

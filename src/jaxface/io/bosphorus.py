@@ -47,9 +47,10 @@ from __future__ import annotations
 import re
 import struct
 import warnings
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Iterable, Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -119,8 +120,14 @@ EMOTION_AUS = {
     "ANGER": (4, 5, 7, 23),
     "DISGUST": (9, 15, 16),
 }
-_EMOTION_ALIASES = {"HAPPINESS": "HAPPY", "SAD": "SADNESS", "SURPRISED": "SURPRISE",
-                    "ANGRY": "ANGER", "DISGUSTED": "DISGUST", "AFRAID": "FEAR"}
+_EMOTION_ALIASES = {
+    "HAPPINESS": "HAPPY",
+    "SAD": "SADNESS",
+    "SURPRISED": "SURPRISE",
+    "ANGRY": "ANGER",
+    "DISGUSTED": "DISGUST",
+    "AFRAID": "FEAR",
+}
 
 
 @dataclass(frozen=True)
@@ -266,8 +273,15 @@ def parse_scan_name(name: str | Path, *, strict: bool = False) -> ScanInfo | Non
         emotion = emo
         aus.extend(AUCode(a) for a in EMOTION_AUS.get(emo, ()))
     return ScanInfo(
-        stem=stem, subject=subject, kind=kind, category=category, code=code, index=index,
-        aus=tuple(aus), emotion=emotion, is_pose=kind in ("YR", "PR", "CR"),
+        stem=stem,
+        subject=subject,
+        kind=kind,
+        category=category,
+        code=code,
+        index=index,
+        aus=tuple(aus),
+        emotion=emotion,
+        is_pose=kind in ("YR", "PR", "CR"),
         is_occlusion=kind == "O",
     )
 
@@ -334,8 +348,10 @@ def read_lm2(path: str | Path) -> ImageLandmarks:
 
     def bad(why: str, lineno: int | None = None):
         where = f" (line {lineno})" if lineno else ""
-        return ScanFormatError(f"{path}{where}: malformed .lm2 file: {why}. Expected '<N> landmarks:', "
-                               f"'Labels:', N label lines, '2D Image coordinates:', N 'x y' lines.")
+        return ScanFormatError(
+            f"{path}{where}: malformed .lm2 file: {why}. Expected '<N> landmarks:', "
+            f"'Labels:', N label lines, '2D Image coordinates:', N 'x y' lines."
+        )
 
     if not lines:
         raise bad("no content")
@@ -353,8 +369,10 @@ def read_lm2(path: str | Path) -> ImageLandmarks:
     lines = lines[n:]
     if not lines or not re.match(r"^2d\s+image\s+coordinates\s*:?$", lines[0][1], re.IGNORECASE):
         found = lines[0][1] if lines else "end of file"
-        raise bad(f"expected '2D Image coordinates:' after {n} labels, found {found!r}",
-                  lines[0][0] if lines else None)
+        raise bad(
+            f"expected '2D Image coordinates:' after {n} labels, found {found!r}",
+            lines[0][0] if lines else None,
+        )
     lines.pop(0)
     if len(lines) < n:
         raise bad(f"file ends after {len(lines)} of {n} coordinate lines")
@@ -372,8 +390,11 @@ def read_lm2(path: str | Path) -> ImageLandmarks:
     return ImageLandmarks(tuple(names), pix)
 
 
-def write_lm2(path: str | Path, landmarks: ImageLandmarks,
-              comment: str = "2D landmarks in texture pixels (column, row), written by jaxface") -> None:
+def write_lm2(
+    path: str | Path,
+    landmarks: ImageLandmarks,
+    comment: str = "2D landmarks in texture pixels (column, row), written by jaxface",
+) -> None:
     """Write ``.lm2`` (layout in the module doc); coordinates with 3 decimals (pixels)."""
     if not isinstance(landmarks, ImageLandmarks):
         raise TypeError("write_lm2 expects an ImageLandmarks")
@@ -391,6 +412,7 @@ def write_lm2(path: str | Path, landmarks: ImageLandmarks,
 # ---------------------------------------------------------------------------------------------
 # the Scan container
 # ---------------------------------------------------------------------------------------------
+
 
 @dataclass(frozen=True, eq=False)
 class Scan:
@@ -430,9 +452,17 @@ class Scan:
 
     # -- constructors --------------------------------------------------------------------
     @classmethod
-    def from_grid(cls, xyz: np.ndarray, valid: np.ndarray | None = None, uv: np.ndarray | None = None,
-                  *, zmin: float = -1.0e9, image_name: str = "", landmarks=None,
-                  path: str | Path | None = None) -> "Scan":
+    def from_grid(
+        cls,
+        xyz: np.ndarray,
+        valid: np.ndarray | None = None,
+        uv: np.ndarray | None = None,
+        *,
+        zmin: float = -1.0e9,
+        image_name: str = "",
+        landmarks=None,
+        path: str | Path | None = None,
+    ) -> Scan:
         """A grid scan from a (nrows, ncols, 3) mm array (row 0 = bottom row).
 
         Args:
@@ -460,10 +490,19 @@ class Scan:
         pts = xyz[valid]
         _check_points(pts, valid, path or "<grid>")
         p = Path(path) if path is not None else None
-        return cls(points=pts, shape=(nr, nc), valid=valid, uv_grid=uv, zmin=float(zmin),
-                   image_name=image_name, background=None, landmarks=landmarks, path=p,
-                   info=parse_scan_name(p) if p is not None else None,
-                   missing_landmarks=_missing(landmarks))
+        return cls(
+            points=pts,
+            shape=(nr, nc),
+            valid=valid,
+            uv_grid=uv,
+            zmin=float(zmin),
+            image_name=image_name,
+            background=None,
+            landmarks=landmarks,
+            path=p,
+            info=parse_scan_name(p) if p is not None else None,
+            missing_landmarks=_missing(landmarks),
+        )
 
     # -- views ---------------------------------------------------------------------------
     @property
@@ -502,12 +541,15 @@ class Scan:
 
     def _need_grid(self, what: str):
         if self.shape is None:
-            raise ScanFormatError(f"{self.path or 'scan'}: {what} needs a range-grid scan (.bnt); "
-                                  f"this is a mesh scan.")
+            raise ScanFormatError(
+                f"{self.path or 'scan'}: {what} needs a range-grid scan (.bnt); "
+                f"this is a mesh scan."
+            )
 
     # -- meshing -------------------------------------------------------------------------
-    def mesh_arrays(self, max_edge_factor: float = DEFAULT_MAX_EDGE_FACTOR, *,
-                    drop_unreferenced: bool = True):
+    def mesh_arrays(
+        self, max_edge_factor: float = DEFAULT_MAX_EDGE_FACTOR, *, drop_unreferenced: bool = True
+    ):
         """Triangulate the scan.
 
         Grid scans: see :func:`grid_triangles` (valid cells only, long edges dropped,
@@ -519,13 +561,18 @@ class Scan:
         """
         if self.shape is None:
             if self.triangles is None:
-                raise ScanFormatError(f"{self.path or 'scan'}: a point cloud without triangles "
-                                      f"cannot be meshed here.")
+                raise ScanFormatError(
+                    f"{self.path or 'scan'}: a point cloud without triangles cannot be meshed here."
+                )
             tri = np.asarray(self.triangles, dtype=np.int64)
             ids = np.arange(self.n_points)
         else:
-            tri = grid_triangles(self.xyz_grid(), self.valid, max_edge_factor=max_edge_factor,
-                                 spacing=self.grid_spacing())
+            tri = grid_triangles(
+                self.xyz_grid(),
+                self.valid,
+                max_edge_factor=max_edge_factor,
+                spacing=self.grid_spacing(),
+            )
             tri = self.grid_index[tri[..., 0], tri[..., 1]]  # (F, 3) into points
             ids = np.arange(self.n_points)
         if drop_unreferenced:
@@ -535,8 +582,9 @@ class Scan:
             return self.points[used], remap[tri], used
         return self.points, tri, ids
 
-    def to_mesh(self, max_edge_factor: float = DEFAULT_MAX_EDGE_FACTOR, *,
-                validate: bool | None = None) -> "TriMesh":
+    def to_mesh(
+        self, max_edge_factor: float = DEFAULT_MAX_EDGE_FACTOR, *, validate: bool | None = None
+    ) -> TriMesh:
         """The scan as a :class:`jaxface.mesh.TriMesh` (mm).
 
         Grid scans are meshed by :func:`grid_triangles` (normals toward +z, the viewer;
@@ -553,12 +601,14 @@ class Scan:
             validate = self.is_grid
         v, t, _ = self.mesh_arrays(max_edge_factor, drop_unreferenced=self.is_grid)
         if t.shape[0] == 0:
-            raise ScanFormatError(f"{self.path or 'scan'}: no triangle survives meshing "
-                                  f"(max_edge_factor={max_edge_factor}); the grid has no valid cells.")
+            raise ScanFormatError(
+                f"{self.path or 'scan'}: no triangle survives meshing "
+                f"(max_edge_factor={max_edge_factor}); the grid has no valid cells."
+            )
         return TriMesh(v, t, validate=validate)
 
     # -- landmarks -----------------------------------------------------------------------
-    def with_landmarks(self, landmarks) -> "Scan":
+    def with_landmarks(self, landmarks) -> Scan:
         """A copy with other landmarks (mm); ``missing_landmarks`` recomputed."""
         return replace(self, landmarks=landmarks, missing_landmarks=_missing(landmarks))
 
@@ -570,14 +620,16 @@ class Scan:
             raise LandmarkError(
                 f"{self.path or 'scan'}: no landmarks loaded but {len(names)} are required "
                 f"({', '.join(names)}); give a .lm3 file (load_scan(path, landmarks=...)).",
-                missing=names)
+                missing=names,
+            )
         have = {_canon(n) for n in self.landmarks.names}
         missing = [n for n in names if _canon(n) not in have]
         if missing:
             raise LandmarkError(
                 f"{self.path or 'scan'}: {len(missing)} required landmark(s) missing: "
                 f"{', '.join(missing)}. Add them to the landmark file or choose other labels.",
-                missing=missing)
+                missing=missing,
+            )
         return self.landmarks.subset(names)
 
 
@@ -590,8 +642,10 @@ def _missing(landmarks) -> tuple[str, ...]:
 
 def _check_points(pts: np.ndarray, valid: np.ndarray | None, where) -> None:
     if pts.shape[0] == 0:
-        raise ScanFormatError(f"{where}: every pixel of the range grid is background (no valid "
-                              f"points); the file holds no scan data.")
+        raise ScanFormatError(
+            f"{where}: every pixel of the range grid is background (no valid "
+            f"points); the file holds no scan data."
+        )
     bad = ~np.all(np.isfinite(pts), axis=1)
     if bad.any():
         if valid is not None:
@@ -599,8 +653,10 @@ def _check_points(pts: np.ndarray, valid: np.ndarray | None, where) -> None:
             loc = ", ".join(f"(row {r}, col {c})" for r, c in rc)
         else:
             loc = ", ".join(map(str, np.flatnonzero(bad)[:5]))
-        raise ScanFormatError(f"{where}: {int(bad.sum())} valid point(s) have NaN/inf coordinates, "
-                              f"first at {loc}; the file is corrupt (background must be zmin, not NaN).")
+        raise ScanFormatError(
+            f"{where}: {int(bad.sum())} valid point(s) have NaN/inf coordinates, "
+            f"first at {loc}; the file is corrupt (background must be zmin, not NaN)."
+        )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -636,13 +692,16 @@ def read_bnt(path: str | Path, *, units: str = "mm", check_size: bool = True) ->
         if len(data) < offset + size:
             raise ScanFormatError(
                 f"{path}: truncated .bnt file: {len(data)} bytes, but reading {what} needs "
-                f"{offset + size}. Re-export or re-download the scan.")
+                f"{offset + size}. Re-export or re-download the scan."
+            )
 
     need(0, _BNT_HEADER.size, "the header (nrows, ncols, zmin)")
     nrows, ncols, zmin = _BNT_HEADER.unpack_from(data, 0)
     if nrows == 0 or ncols == 0:
-        raise ScanFormatError(f"{path}: range grid has zero size ({nrows} rows x {ncols} columns); "
-                              f"the header is corrupt.")
+        raise ScanFormatError(
+            f"{path}: range grid has zero size ({nrows} rows x {ncols} columns); "
+            f"the header is corrupt."
+        )
     if not np.isfinite(zmin):
         raise ScanFormatError(f"{path}: background value zmin is {zmin}; the header is corrupt.")
     off = _BNT_HEADER.size
@@ -650,7 +709,7 @@ def read_bnt(path: str | Path, *, units: str = "mm", check_size: bool = True) ->
     (name_len,) = _U16.unpack_from(data, off)
     off += 2
     need(off, name_len, f"the {name_len}-byte image name")
-    image_name = data[off: off + name_len].decode("latin-1")
+    image_name = data[off : off + name_len].decode("latin-1")
     off += name_len
     need(off, 4, "the value count")
     (count,) = _U32.unpack_from(data, off)
@@ -659,11 +718,15 @@ def read_bnt(path: str | Path, *, units: str = "mm", check_size: bool = True) ->
     if count != 5 * n:
         raise ScanFormatError(
             f"{path}: wrong count field {count}: a {nrows} x {ncols} grid needs 5*{n} = {5 * n} "
-            f"values (X, Y, Z, U, V planes); the file is corrupt or not a .bnt file.")
+            f"values (X, Y, Z, U, V planes); the file is corrupt or not a .bnt file."
+        )
     need(off, 8 * count, f"{count} float64 values")
     if len(data) > off + 8 * count:
-        warnings.warn(f"{path}: {len(data) - off - 8 * count} unexpected trailing bytes after the "
-                      f"data were ignored.", stacklevel=2)
+        warnings.warn(
+            f"{path}: {len(data) - off - 8 * count} unexpected trailing bytes after the "
+            f"data were ignored.",
+            stacklevel=2,
+        )
     planes = np.frombuffer(data, dtype="<f8", count=count, offset=off).reshape(5, nrows, ncols)
     xyz = np.stack(planes[:3], axis=-1).astype(np.float64)
     uv = np.stack(planes[3:], axis=-1).astype(np.float64)
@@ -672,15 +735,26 @@ def read_bnt(path: str | Path, *, units: str = "mm", check_size: bool = True) ->
     _check_points(pts, valid, path)
     if not np.all(np.isfinite(uv[valid])):
         k = int((~np.all(np.isfinite(uv[valid]), axis=1)).sum())
-        raise ScanFormatError(f"{path}: {k} valid pixel(s) have NaN/inf texture coordinates (U, V); "
-                              f"the file is corrupt.")
+        raise ScanFormatError(
+            f"{path}: {k} valid pixel(s) have NaN/inf texture coordinates (U, V); "
+            f"the file is corrupt."
+        )
     background = np.where(valid[..., None], zmin, xyz)
     if scale != 1.0:
         pts = pts * scale
     _check_extent(pts, units, path, check_size)
-    return Scan(points=pts, shape=(nrows, ncols), valid=valid, uv_grid=uv, zmin=float(zmin),
-                image_name=image_name, background=background, path=path,
-                info=parse_scan_name(path), missing_landmarks=FACE_LABELS)
+    return Scan(
+        points=pts,
+        shape=(nrows, ncols),
+        valid=valid,
+        uv_grid=uv,
+        zmin=float(zmin),
+        image_name=image_name,
+        background=background,
+        path=path,
+        info=parse_scan_name(path),
+        missing_landmarks=FACE_LABELS,
+    )
 
 
 def write_bnt(path: str | Path, scan: Scan, *, image_name: str | None = None) -> None:
@@ -690,15 +764,20 @@ def write_bnt(path: str | Path, scan: Scan, *, image_name: str | None = None) ->
     the scan was read from a file (so read -> write is byte-exact), else ``zmin``.
     """
     if scan.shape is None:
-        raise ScanFormatError(f"{scan.path or 'scan'}: only range-grid scans can be written as .bnt")
+        raise ScanFormatError(
+            f"{scan.path or 'scan'}: only range-grid scans can be written as .bnt"
+        )
     nrows, ncols = scan.shape
     if not (0 < nrows < 65536 and 0 < ncols < 65536):
         raise ScanFormatError(f"grid {nrows} x {ncols} does not fit the uint16 .bnt header")
     name = (scan.image_name if image_name is None else image_name).encode("latin-1")
     if len(name) > 65535:
         raise ScanFormatError("image name longer than 65535 bytes")
-    xyz = np.full((nrows, ncols, 3), scan.zmin, dtype=np.float64) if scan.background is None \
+    xyz = (
+        np.full((nrows, ncols, 3), scan.zmin, dtype=np.float64)
+        if scan.background is None
         else np.array(scan.background, dtype=np.float64)
+    )
     xyz[scan.valid] = scan.points
     uv = scan.uv_grid if scan.uv_grid is not None else np.zeros((nrows, ncols, 2))
     planes = np.concatenate([np.moveaxis(xyz, -1, 0), np.moveaxis(uv, -1, 0)], axis=0)
@@ -730,20 +809,29 @@ def _check_extent(pts: np.ndarray, units: str, path, check_size: bool) -> None:
 
 def _grid_spacing(xyz: np.ndarray, valid: np.ndarray, where) -> float:
     d = []
-    for a, b, m in ((xyz[:, 1:], xyz[:, :-1], valid[:, 1:] & valid[:, :-1]),
-                    (xyz[1:], xyz[:-1], valid[1:] & valid[:-1])):
+    for a, b, m in (
+        (xyz[:, 1:], xyz[:, :-1], valid[:, 1:] & valid[:, :-1]),
+        (xyz[1:], xyz[:-1], valid[1:] & valid[:-1]),
+    ):
         if m.any():
             d.append(np.linalg.norm((a - b)[m][:, :2], axis=1))
     d = np.concatenate(d) if d else np.zeros(0)
     d = d[d > 0]
     if d.size == 0:
-        raise ScanFormatError(f"{where}: no two adjacent valid pixels at distinct positions; cannot "
-                              f"measure the grid spacing or mesh the grid.")
+        raise ScanFormatError(
+            f"{where}: no two adjacent valid pixels at distinct positions; cannot "
+            f"measure the grid spacing or mesh the grid."
+        )
     return float(np.median(d))
 
 
-def grid_triangles(xyz: np.ndarray, valid: np.ndarray, *, max_edge_factor: float = DEFAULT_MAX_EDGE_FACTOR,
-                   spacing: float | None = None) -> np.ndarray:
+def grid_triangles(
+    xyz: np.ndarray,
+    valid: np.ndarray,
+    *,
+    max_edge_factor: float = DEFAULT_MAX_EDGE_FACTOR,
+    spacing: float | None = None,
+) -> np.ndarray:
     """Triangulate a range grid.
 
     Each cell (a = (i, j), b = (i, j+1), c = (i+1, j+1), d = (i+1, j)) with four valid
@@ -769,8 +857,15 @@ def grid_triangles(xyz: np.ndarray, valid: np.ndarray, *, max_edge_factor: float
         return np.zeros((0, 3, 2), dtype=np.int64)
     ii, jj = np.meshgrid(np.arange(nr - 1), np.arange(nc - 1), indexing="ij")
     ii, jj = ii.ravel(), jj.ravel()
-    corners = np.stack([np.stack([ii, jj], -1), np.stack([ii, jj + 1], -1),
-                        np.stack([ii + 1, jj + 1], -1), np.stack([ii + 1, jj], -1)], axis=1)  # (C,4,2)
+    corners = np.stack(
+        [
+            np.stack([ii, jj], -1),
+            np.stack([ii, jj + 1], -1),
+            np.stack([ii + 1, jj + 1], -1),
+            np.stack([ii + 1, jj], -1),
+        ],
+        axis=1,
+    )  # (C,4,2)
     cv = valid[corners[..., 0], corners[..., 1]]  # (C, 4)
     nvalid = cv.sum(1)
     P = np.where(valid[..., None], xyz, 0.0)
@@ -799,8 +894,14 @@ def grid_triangles(xyz: np.ndarray, valid: np.ndarray, *, max_edge_factor: float
     if np.isfinite(max_edge_factor):
         if spacing is None:
             spacing = _grid_spacing(xyz, valid, "grid")
-        e = np.stack([np.linalg.norm(V[:, 1] - V[:, 0], axis=1), np.linalg.norm(V[:, 2] - V[:, 1], axis=1),
-                      np.linalg.norm(V[:, 0] - V[:, 2], axis=1)], 1).max(1)
+        e = np.stack(
+            [
+                np.linalg.norm(V[:, 1] - V[:, 0], axis=1),
+                np.linalg.norm(V[:, 2] - V[:, 1], axis=1),
+                np.linalg.norm(V[:, 0] - V[:, 2], axis=1),
+            ],
+            1,
+        ).max(1)
         ok = e <= max_edge_factor * spacing
         T, V = T[ok], V[ok]
     # orientation: make the total projected normal point toward +z
@@ -815,8 +916,15 @@ def grid_triangles(xyz: np.ndarray, valid: np.ndarray, *, max_edge_factor: float
 # ---------------------------------------------------------------------------------------------
 
 
-def load_scan(path: str | Path, landmarks: str | Path | bool | None = None, units: str = "mm", *,
-              require: Sequence[str] = (), warn_missing: bool = True, check_size: bool = True) -> Scan:
+def load_scan(
+    path: str | Path,
+    landmarks: str | Path | bool | None = None,
+    units: str = "mm",
+    *,
+    require: Sequence[str] = (),
+    warn_missing: bool = True,
+    check_size: bool = True,
+) -> Scan:
     """Load a scan (``.bnt`` range grid, or ``.obj`` / ``.ply`` mesh) with its landmarks.
 
     Args:
@@ -852,10 +960,17 @@ def load_scan(path: str | Path, landmarks: str | Path | bool | None = None, unit
         _check_points(pts, None, path)
         tri = np.asarray(mesh.triangles)
         if tri.size == 0 or tri.min() < 0 or tri.max() >= len(pts):
-            raise ScanFormatError(f"{path}: the scan mesh has no triangles or triangle indices "
-                                  f"outside 0..{len(pts) - 1}.")
-        scan = Scan(points=pts, triangles=np.asarray(mesh.triangles, dtype=np.int64), path=path,
-                    info=parse_scan_name(path), missing_landmarks=FACE_LABELS)
+            raise ScanFormatError(
+                f"{path}: the scan mesh has no triangles or triangle indices "
+                f"outside 0..{len(pts) - 1}."
+            )
+        scan = Scan(
+            points=pts,
+            triangles=np.asarray(mesh.triangles, dtype=np.int64),
+            path=path,
+            info=parse_scan_name(path),
+            missing_landmarks=FACE_LABELS,
+        )
     else:
         raise ScanFormatError(f"{path}: unknown scan format {ext!r}; use .bnt, .obj or .ply")
 
@@ -882,7 +997,9 @@ def load_scan(path: str | Path, landmarks: str | Path | bool | None = None, unit
             f"{lm_path}: {len(scan.missing_landmarks)} Bosphorus landmark(s) absent: "
             f"{', '.join(scan.missing_landmarks)}. They are listed in Scan.missing_landmarks; "
             f"complete_landmarks() estimates bilateral ones by mirroring.",
-            MissingLandmarkWarning, stacklevel=2)
+            MissingLandmarkWarning,
+            stacklevel=2,
+        )
     return scan
 
 
@@ -890,12 +1007,19 @@ def load_scan(path: str | Path, landmarks: str | Path | bool | None = None, unit
 # missing-landmark workaround
 # ---------------------------------------------------------------------------------------------
 
-_MIDLINE = ("Nose tip", "Upper lip outer middle", "Upper lip inner middle", "Lower lip inner middle",
-            "Lower lip outer middle", "Chin middle")
+_MIDLINE = (
+    "Nose tip",
+    "Upper lip outer middle",
+    "Upper lip inner middle",
+    "Lower lip inner middle",
+    "Lower lip outer middle",
+    "Chin middle",
+)
 
 
-def complete_landmarks(landmarks: Landmarks, points: np.ndarray | None = None,
-                       names: Sequence[str] = FACE_LABELS) -> tuple[Landmarks, tuple[str, ...]]:
+def complete_landmarks(
+    landmarks: Landmarks, points: np.ndarray | None = None, names: Sequence[str] = FACE_LABELS
+) -> tuple[Landmarks, tuple[str, ...]]:
     """Estimate missing bilateral landmarks by mirroring their partner.
 
     The mid-sagittal plane is fitted (least squares) to the midpoints of the complete
@@ -914,8 +1038,11 @@ def complete_landmarks(landmarks: Landmarks, points: np.ndarray | None = None,
     pos = {c: np.asarray(landmarks[n], dtype=np.float64) for c, n in have.items()}
     pairs = [(l, r) for l, r in MIRROR_PAIRS if _canon(l) in pos and _canon(r) in pos]
     if len(pairs) < 2:
-        raise LandmarkError(f"need at least two complete left/right landmark pairs to mirror missing "
-                            f"ones; found {len(pairs)}", missing=[n for n in names if _canon(n) not in pos])
+        raise LandmarkError(
+            f"need at least two complete left/right landmark pairs to mirror missing "
+            f"ones; found {len(pairs)}",
+            missing=[n for n in names if _canon(n) not in pos],
+        )
     normal = np.mean([pos[_canon(l)] - pos[_canon(r)] for l, r in pairs], axis=0)
     normal /= np.linalg.norm(normal)
     mids = [0.5 * (pos[_canon(l)] + pos[_canon(r)]) for l, r in pairs]

@@ -26,8 +26,8 @@ Choices (facial-anatomy notes; Erdoğdu 2010 notes sec. 7.1):
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from typing import Sequence
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -71,8 +71,12 @@ class RigidTransform:
     scale: float = 1.0
 
     def __post_init__(self):
-        object.__setattr__(self, "rotation", np.asarray(self.rotation, dtype=np.float64).reshape(3, 3))
-        object.__setattr__(self, "translation", np.asarray(self.translation, dtype=np.float64).reshape(3))
+        object.__setattr__(
+            self, "rotation", np.asarray(self.rotation, dtype=np.float64).reshape(3, 3)
+        )
+        object.__setattr__(
+            self, "translation", np.asarray(self.translation, dtype=np.float64).reshape(3)
+        )
         object.__setattr__(self, "scale", float(self.scale))
 
     def apply(self, points: np.ndarray) -> np.ndarray:
@@ -86,15 +90,17 @@ class RigidTransform:
         """Rotate (and scale) direction/displacement vectors (..., 3); no translation."""
         return self.scale * np.asarray(vectors, dtype=np.float64) @ self.rotation.T
 
-    def inverse(self) -> "RigidTransform":
+    def inverse(self) -> RigidTransform:
         Rt = self.rotation.T
         return RigidTransform(Rt, -(Rt @ self.translation) / self.scale, 1.0 / self.scale)
 
-    def compose(self, first: "RigidTransform") -> "RigidTransform":
+    def compose(self, first: RigidTransform) -> RigidTransform:
         """``self ∘ first``: apply ``first``, then ``self``."""
-        return RigidTransform(self.rotation @ first.rotation,
-                              self.scale * self.rotation @ first.translation + self.translation,
-                              self.scale * first.scale)
+        return RigidTransform(
+            self.rotation @ first.rotation,
+            self.scale * self.rotation @ first.translation + self.translation,
+            self.scale * first.scale,
+        )
 
     @property
     def angle_deg(self) -> float:
@@ -104,12 +110,17 @@ class RigidTransform:
 
     def as_dict(self) -> dict:
         """JSON-friendly: rotation matrix, translation (mm), scale, rotation angle (deg)."""
-        return {"rotation": self.rotation.tolist(), "translation_mm": self.translation.tolist(),
-                "scale": self.scale, "angle_deg": self.angle_deg}
+        return {
+            "rotation": self.rotation.tolist(),
+            "translation_mm": self.translation.tolist(),
+            "scale": self.scale,
+            "angle_deg": self.angle_deg,
+        }
 
 
-def procrustes(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None, *,
-               scale: bool = False) -> RigidTransform:
+def procrustes(
+    src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None, *, scale: bool = False
+) -> RigidTransform:
     """Least-squares rigid (or similarity, ``scale=True``) transform mapping ``src`` to ``dst``
     (Kabsch/Umeyama with reflection guard).
 
@@ -123,10 +134,14 @@ def procrustes(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = No
     src = np.asarray(src, dtype=np.float64)
     dst = np.asarray(dst, dtype=np.float64)
     if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3:
-        raise FitError(f"procrustes needs two (n, 3) arrays of equal shape, got {src.shape} and {dst.shape}")
+        raise FitError(
+            f"procrustes needs two (n, 3) arrays of equal shape, got {src.shape} and {dst.shape}"
+        )
     w = np.ones(len(src)) if weights is None else np.asarray(weights, dtype=np.float64)
     if int((w > 0).sum()) < 3:
-        raise FitError(f"rigid alignment needs at least 3 weighted point pairs, got {int((w > 0).sum())}")
+        raise FitError(
+            f"rigid alignment needs at least 3 weighted point pairs, got {int((w > 0).sum())}"
+        )
     w = w / w.sum()
     cs, cd = w @ src, w @ dst
     a, b = src - cs, dst - cd
@@ -144,8 +159,14 @@ def procrustes(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = No
     return RigidTransform(R, cd - s * R @ cs, s)
 
 
-def align_landmarks(moving, fixed, labels: Sequence[str] = STABLE_ALIGNMENT_LABELS, *,
-                    scale: bool = False, min_count: int = 3) -> tuple[RigidTransform, tuple[str, ...]]:
+def align_landmarks(
+    moving,
+    fixed,
+    labels: Sequence[str] = STABLE_ALIGNMENT_LABELS,
+    *,
+    scale: bool = False,
+    min_count: int = 3,
+) -> tuple[RigidTransform, tuple[str, ...]]:
     """Rigid/similarity transform taking ``moving`` landmarks onto ``fixed`` ones (mm),
     using the labels in ``labels`` present in both (matched by label).
 
@@ -163,14 +184,16 @@ def align_landmarks(moving, fixed, labels: Sequence[str] = STABLE_ALIGNMENT_LABE
         raise LandmarkError(
             f"rigid alignment needs at least {min_count} stable landmarks present in both scans; "
             f"found {len(used)} ({', '.join(used) or 'none'}); missing: {', '.join(missing)}.",
-            missing=missing)
+            missing=missing,
+        )
     a = np.stack([np.asarray(moving[mv[_canon(l)]], dtype=np.float64) for l in used])
     b = np.stack([np.asarray(fixed[fx[_canon(l)]], dtype=np.float64) for l in used])
     return procrustes(a, b, scale=scale), tuple(used)
 
 
-def stable_region(points: np.ndarray, landmarks, *, radius_factor: float = 0.75,
-                  below_nose_mm: float = 5.0) -> np.ndarray:
+def stable_region(
+    points: np.ndarray, landmarks, *, radius_factor: float = 0.75, below_nose_mm: float = 5.0
+) -> np.ndarray:
     """(N,) bool mask of the expression-stable part of a face: points within
     ``radius_factor`` x (outer-eye-corner distance) of the centroid of the stable landmarks,
     and no lower than ``below_nose_mm`` under the nose tip (excludes mouth and jaw).
@@ -181,18 +204,26 @@ def stable_region(points: np.ndarray, landmarks, *, radius_factor: float = 0.75,
     """
     pts = np.asarray(points, dtype=np.float64)
     have = {_canon(n): n for n in landmarks.names}
-    st = [np.asarray(landmarks[have[_canon(l)]]) for l in STABLE_ALIGNMENT_LABELS if _canon(l) in have]
+    st = [
+        np.asarray(landmarks[have[_canon(l)]]) for l in STABLE_ALIGNMENT_LABELS if _canon(l) in have
+    ]
     if len(st) < 3 or _canon("Nose tip") not in have:
-        raise LandmarkError("the stable region needs the nose tip and at least 3 stable landmarks",
-                            missing=[l for l in STABLE_ALIGNMENT_LABELS if _canon(l) not in have])
+        raise LandmarkError(
+            "the stable region needs the nose tip and at least 3 stable landmarks",
+            missing=[l for l in STABLE_ALIGNMENT_LABELS if _canon(l) not in have],
+        )
     c = np.mean(st, axis=0)
     if _canon("Outer left eye corner") in have and _canon("Outer right eye corner") in have:
-        size = np.linalg.norm(np.asarray(landmarks[have[_canon("Outer left eye corner")]])
-                              - np.asarray(landmarks[have[_canon("Outer right eye corner")]]))
+        size = np.linalg.norm(
+            np.asarray(landmarks[have[_canon("Outer left eye corner")]])
+            - np.asarray(landmarks[have[_canon("Outer right eye corner")]])
+        )
     else:
         size = 2.0 * np.max(np.linalg.norm(np.asarray(st) - c, axis=1))
     tip = np.asarray(landmarks[have[_canon("Nose tip")]])
-    return (np.linalg.norm(pts - c, axis=1) < radius_factor * size) & (pts[:, 1] > tip[1] - below_nose_mm)
+    return (np.linalg.norm(pts - c, axis=1) < radius_factor * size) & (
+        pts[:, 1] > tip[1] - below_nose_mm
+    )
 
 
 def point_normals(scan: Scan) -> np.ndarray:
@@ -239,15 +270,23 @@ class ICPInfo:
 
     iterations: int
     converged: bool
-    rms: float           # weighted RMS point-to-plane residual at the end
-    median: float        # median absolute point-to-plane residual of the inliers
+    rms: float  # weighted RMS point-to-plane residual at the end
+    median: float  # median absolute point-to-plane residual of the inliers
     n_inliers: int
 
 
-def icp(moving: np.ndarray, fixed: np.ndarray, fixed_normals: np.ndarray, *,
-        init: RigidTransform | None = None, fixed_reject: np.ndarray | None = None,
-        iterations: int = 30, max_distance: float = 5.0, tol: float = 1e-5,
-        anneal: tuple[float, float] | None = None) -> tuple[RigidTransform, ICPInfo]:
+def icp(
+    moving: np.ndarray,
+    fixed: np.ndarray,
+    fixed_normals: np.ndarray,
+    *,
+    init: RigidTransform | None = None,
+    fixed_reject: np.ndarray | None = None,
+    iterations: int = 30,
+    max_distance: float = 5.0,
+    tol: float = 1e-5,
+    anneal: tuple[float, float] | None = None,
+) -> tuple[RigidTransform, ICPInfo]:
     """Robust point-to-plane ICP: the rigid transform taking ``moving`` onto the surface
     sampled by ``fixed``.
 
@@ -277,8 +316,10 @@ def icp(moving: np.ndarray, fixed: np.ndarray, fixed_normals: np.ndarray, *,
         d, j = tree.query(p)
         ok = (d < max_distance) & ~rej[j]
         if ok.sum() < 6:
-            raise FitError(f"ICP found only {int(ok.sum())} matches closer than {max_distance} mm; "
-                           f"the scans are not roughly aligned (check the landmarks).")
+            raise FitError(
+                f"ICP found only {int(ok.sum())} matches closer than {max_distance} mm; "
+                f"the scans are not roughly aligned (check the landmarks)."
+            )
         p, q, n = p[ok], fx[j[ok]], fn[j[ok]]
         r = np.einsum("ij,ij->i", p - q, n)
         mad = np.median(np.abs(r - np.median(r)))
@@ -329,20 +370,34 @@ class AlignmentResult:
     notes: tuple[str, ...] = ()
 
     def as_dict(self) -> dict:
-        return {"transform": self.transform.as_dict(), "landmark_labels": list(self.landmark_labels),
-                "landmark_rms_mm": self.landmark_rms,
-                "icp": None if self.icp is None else self.icp.__dict__.copy(), "notes": list(self.notes)}
+        return {
+            "transform": self.transform.as_dict(),
+            "landmark_labels": list(self.landmark_labels),
+            "landmark_rms_mm": self.landmark_rms,
+            "icp": None if self.icp is None else self.icp.__dict__.copy(),
+            "notes": list(self.notes),
+        }
 
 
 #: Tukey cut-off schedule (mm) of the whole-face ICP stage of ``region="auto"``.
 ANNEAL = (3.0, 0.3)
 
 
-def align_points(moving_points: np.ndarray, moving_landmarks: Landmarks, fixed_points: np.ndarray,
-                 fixed_normals: np.ndarray, fixed_landmarks: Landmarks, *,
-                 fixed_reject: np.ndarray | None = None, use_icp: bool = True, scale: bool = False,
-                 region="auto", icp_iterations: int = 40, max_distance: float = 5.0,
-                 subsample: int = 3) -> tuple[RigidTransform, tuple[str, ...], ICPInfo | None, list[str]]:
+def align_points(
+    moving_points: np.ndarray,
+    moving_landmarks: Landmarks,
+    fixed_points: np.ndarray,
+    fixed_normals: np.ndarray,
+    fixed_landmarks: Landmarks,
+    *,
+    fixed_reject: np.ndarray | None = None,
+    use_icp: bool = True,
+    scale: bool = False,
+    region="auto",
+    icp_iterations: int = 40,
+    max_distance: float = 5.0,
+    subsample: int = 3,
+) -> tuple[RigidTransform, tuple[str, ...], ICPInfo | None, list[str]]:
     """Core of :func:`align_scan` on plain arrays (mm): stable-landmark Procrustes, then ICP.
 
     Args:
@@ -386,22 +441,32 @@ def align_points(moving_points: np.ndarray, moving_landmarks: Landmarks, fixed_p
             st = stable_region(pts, moving_landmarks)[mask][::step]
             if st.sum() >= 50:
                 rigid0, _ = icp(pre.apply(mov[st]), fixed_points, fixed_normals, init=rigid0, **kw)
-            R_icp, info = icp(pre.apply(mov), fixed_points, fixed_normals, init=rigid0,
-                              anneal=ANNEAL, **kw)
+            R_icp, info = icp(
+                pre.apply(mov), fixed_points, fixed_normals, init=rigid0, anneal=ANNEAL, **kw
+            )
         else:
             R_icp, info = icp(pre.apply(mov), fixed_points, fixed_normals, init=rigid0, **kw)
         T = R_icp.compose(pre)
         if not info.converged:
-            notes.append(f"ICP did not converge in {info.iterations} iterations "
-                         f"(last rms {info.rms:.3f} mm)")
+            notes.append(
+                f"ICP did not converge in {info.iterations} iterations (last rms {info.rms:.3f} mm)"
+            )
     except FitError as e:
         notes.append(f"ICP failed, landmark alignment kept: {e}")
     return T, used, info, notes
 
 
-def align_scan(scan: Scan, reference: Scan, *, use_icp: bool = True, scale: bool = False,
-               region="auto", icp_iterations: int = 40, max_distance: float = 5.0,
-               subsample: int = 3) -> AlignmentResult:
+def align_scan(
+    scan: Scan,
+    reference: Scan,
+    *,
+    use_icp: bool = True,
+    scale: bool = False,
+    region="auto",
+    icp_iterations: int = 40,
+    max_distance: float = 5.0,
+    subsample: int = 3,
+) -> AlignmentResult:
     """Align ``scan`` (e.g. an expression scan) rigidly to ``reference`` (e.g. the same
     subject's neutral): stable-landmark Procrustes, then robust ICP (see the module doc).
 
@@ -420,9 +485,11 @@ def align_scan(scan: Scan, reference: Scan, *, use_icp: bool = True, scale: bool
         LandmarkError: not enough common stable landmarks.
     """
     if scan.landmarks is None or reference.landmarks is None:
-        raise LandmarkError(f"align_scan needs landmarks on both scans ({scan.path or 'scan'}, "
-                            f"{reference.path or 'reference'}); load them with the .lm3 files.",
-                            missing=STABLE_ALIGNMENT_LABELS)
+        raise LandmarkError(
+            f"align_scan needs landmarks on both scans ({scan.path or 'scan'}, "
+            f"{reference.path or 'reference'}); load them with the .lm3 files.",
+            missing=STABLE_ALIGNMENT_LABELS,
+        )
     notes = []
     for s in (scan, reference):
         if s.info is not None and (s.info.is_pose or s.info.is_occlusion):
@@ -430,9 +497,19 @@ def align_scan(scan: Scan, reference: Scan, *, use_icp: bool = True, scale: bool
     fn = point_normals(reference) if use_icp else None
     rej = boundary_points(reference) if use_icp else None
     T, used, info, more = align_points(
-        scan.points, scan.landmarks, reference.points, fn, reference.landmarks, fixed_reject=rej,
-        use_icp=use_icp, scale=scale, region=region, icp_iterations=icp_iterations,
-        max_distance=max_distance, subsample=subsample)
+        scan.points,
+        scan.landmarks,
+        reference.points,
+        fn,
+        reference.landmarks,
+        fixed_reject=rej,
+        use_icp=use_icp,
+        scale=scale,
+        region=region,
+        icp_iterations=icp_iterations,
+        max_distance=max_distance,
+        subsample=subsample,
+    )
     notes += more
     moved_lm = scan.landmarks.transformed(T.rotation * T.scale, T.translation)
     a = np.stack([np.asarray(moved_lm[l]) for l in used])

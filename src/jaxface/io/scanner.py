@@ -112,7 +112,9 @@ class GridHits:
         if corners.size and corners.max() >= f.shape[-2]:
             raise MeshError(
                 f"field has {f.shape[-2]} vertices but the scanned mesh's triangles use vertex "
-                f"{int(corners.max())}; pass a field over the same mesh.", problem="shape")
+                f"{int(corners.max())}; pass a field over the same mesh.",
+                problem="shape",
+            )
         return np.einsum("nk,...nkc->...nc", self.bary[self.valid], f[..., corners, :])
 
     def positions(self, vertices) -> np.ndarray:
@@ -133,7 +135,9 @@ def grid_axes(lo: float, hi: float, resolution: float) -> np.ndarray:
     resolution share their nodes (and reproduce a ``.bnt`` grid of that spacing)."""
     res = float(resolution)
     if not (np.isfinite(res) and res > 0):
-        raise ScanFormatError(f"scan resolution must be a positive number of mm, got {resolution!r}.")
+        raise ScanFormatError(
+            f"scan resolution must be a positive number of mm, got {resolution!r}."
+        )
     k0 = int(np.ceil(lo / res - 1e-9))
     k1 = int(np.floor(hi / res + 1e-9))
     return np.arange(k0, k1 + 1, dtype=np.float64) * res
@@ -147,23 +151,33 @@ def _as_arrays(mesh) -> tuple[np.ndarray, np.ndarray]:
     elif isinstance(mesh, (tuple, list)) and len(mesh) == 2:
         v, t = mesh
     else:
-        raise MeshError(f"cannot scan an object of type {type(mesh).__name__}: give a TriMesh, a "
-                        f"trimesh.Trimesh or a (vertices (V, 3) mm, triangles (F, 3)) pair.",
-                        problem="bad_type")
+        raise MeshError(
+            f"cannot scan an object of type {type(mesh).__name__}: give a TriMesh, a "
+            f"trimesh.Trimesh or a (vertices (V, 3) mm, triangles (F, 3)) pair.",
+            problem="bad_type",
+        )
     v = np.asarray(v, dtype=np.float64)
     t = np.asarray(t)
     if v.ndim != 2 or v.shape[1] != 3 or t.ndim != 2 or t.shape[1] != 3:
-        raise MeshError(f"vertices must be (V, 3) and triangles (F, 3); got {v.shape} and {t.shape}.",
-                        problem="shape")
+        raise MeshError(
+            f"vertices must be (V, 3) and triangles (F, 3); got {v.shape} and {t.shape}.",
+            problem="shape",
+        )
     t = t.astype(np.int64)
     if t.size and (t.min() < 0 or t.max() >= len(v)):
-        raise MeshError(f"triangle indices must lie in 0..{len(v) - 1}; found {int(t.min())}.."
-                        f"{int(t.max())}.", problem="bad_indices")
+        raise MeshError(
+            f"triangle indices must lie in 0..{len(v) - 1}; found {int(t.min())}..{int(t.max())}.",
+            problem="bad_indices",
+        )
     used = np.unique(t)
     bad = used[~np.all(np.isfinite(v[used]), axis=1)]
     if bad.size:
-        raise MeshError(f"{bad.size} vertices used by triangles have NaN/inf coordinates, first "
-                        f"{bad[:5].tolist()}.", problem="nonfinite", elements=bad[:100])
+        raise MeshError(
+            f"{bad.size} vertices used by triangles have NaN/inf coordinates, first "
+            f"{bad[:5].tolist()}.",
+            problem="nonfinite",
+            elements=bad[:100],
+        )
     return v, t
 
 
@@ -243,7 +257,12 @@ def cast_grid(vertices, triangles, xs, ys, *, chunk: int = 2_000_000) -> GridHit
     if found:
         pix, z, tri, bary = _reduce_nearest(*(np.concatenate(x) for x in zip(*found)))
     else:
-        pix, z, tri, bary = (np.zeros(0, np.int64), np.zeros(0), np.zeros(0, np.int64), np.zeros((0, 3)))
+        pix, z, tri, bary = (
+            np.zeros(0, np.int64),
+            np.zeros(0),
+            np.zeros(0, np.int64),
+            np.zeros((0, 3)),
+        )
     valid = np.zeros(nr * nc, dtype=bool)
     valid[pix] = True
     triangle = np.full(nr * nc, -1, dtype=np.int64)
@@ -257,14 +276,31 @@ def cast_grid(vertices, triangles, xs, ys, *, chunk: int = 2_000_000) -> GridHit
     xyz[pix, 2] = z
     for arr in (valid, triangle, B, xyz, T):
         arr.setflags(write=False)
-    return GridHits(xs=xs, ys=ys, valid=valid.reshape(nr, nc), triangle=triangle.reshape(nr, nc),
-                    bary=B.reshape(nr, nc, 3), xyz=xyz.reshape(nr, nc, 3), triangles=T)
+    return GridHits(
+        xs=xs,
+        ys=ys,
+        valid=valid.reshape(nr, nc),
+        triangle=triangle.reshape(nr, nc),
+        bary=B.reshape(nr, nc, 3),
+        xyz=xyz.reshape(nr, nc, 3),
+        triangles=T,
+    )
 
 
-def scan_mesh(mesh, resolution: float = DEFAULT_RESOLUTION_MM, *, bounds=None,
-              landmarks: "Landmarks | None" = None, max_angle_deg: float | None = None,
-              noise_mm: float = 0.0, seed: int | None = 0, image_name: str = "",
-              path=None, zmin: float = -1.0e9, return_hits: bool = False):
+def scan_mesh(
+    mesh,
+    resolution: float = DEFAULT_RESOLUTION_MM,
+    *,
+    bounds=None,
+    landmarks: Landmarks | None = None,
+    max_angle_deg: float | None = None,
+    noise_mm: float = 0.0,
+    seed: int | None = 0,
+    image_name: str = "",
+    path=None,
+    zmin: float = -1.0e9,
+    return_hits: bool = False,
+):
     """Scan a mesh into a Bosphorus-style range grid (virtual scanner looking along ``-z``).
 
     Args:
@@ -299,7 +335,9 @@ def scan_mesh(mesh, resolution: float = DEFAULT_RESOLUTION_MM, *, bounds=None,
     V, T = _as_arrays(mesh)
     res = float(resolution)
     if not (np.isfinite(res) and res > 0):
-        raise ScanFormatError(f"scan resolution must be a positive number of mm, got {resolution!r}.")
+        raise ScanFormatError(
+            f"scan resolution must be a positive number of mm, got {resolution!r}."
+        )
     if not (np.isfinite(noise_mm) and noise_mm >= 0):
         raise ScanFormatError(f"noise_mm must be a non-negative number of mm, got {noise_mm!r}.")
     if max_angle_deg is not None and not (0 < float(max_angle_deg) <= 90):
@@ -312,43 +350,55 @@ def scan_mesh(mesh, resolution: float = DEFAULT_RESOLUTION_MM, *, bounds=None,
     else:
         b = np.asarray(bounds, dtype=np.float64)
         if b.shape != (2, 2) or not np.all(np.isfinite(b)) or np.any(b[1] <= b[0]):
-            raise ScanFormatError(f"bounds must be ((xmin, ymin), (xmax, ymax)) mm with max > min, "
-                                  f"got {bounds!r}.")
+            raise ScanFormatError(
+                f"bounds must be ((xmin, ymin), (xmax, ymax)) mm with max > min, got {bounds!r}."
+            )
         lo, hi = b
     xs = grid_axes(lo[0], hi[0], res)
     ys = grid_axes(lo[1], hi[1], res)
     nr, nc = ys.size, xs.size
     if nr == 0 or nc == 0:
-        raise ScanFormatError(f"the scan window {lo.tolist()}..{hi.tolist()} mm holds no grid node at "
-                              f"resolution {res:g} mm; widen the bounds or lower the resolution.")
+        raise ScanFormatError(
+            f"the scan window {lo.tolist()}..{hi.tolist()} mm holds no grid node at "
+            f"resolution {res:g} mm; widen the bounds or lower the resolution."
+        )
     if nr > 65535 or nc > 65535 or nr * nc > MAX_GRID_PIXELS:
         raise ScanFormatError(
             f"a {nr} x {nc} grid at {res:g} mm is too large (limit {MAX_GRID_PIXELS} pixels, 65535 "
             f"per side): is the mesh in mm (extent {hi - lo} mm)? Use a coarser resolution or "
-            f"give the input units.")
+            f"give the input units."
+        )
     hits = cast_grid(V, T, xs, ys)
     valid = np.array(hits.valid)
     xyz = np.array(hits.xyz)
     if max_angle_deg is not None and valid.any():
         n = np.cross(V[T[:, 1]] - V[T[:, 0]], V[T[:, 2]] - V[T[:, 0]])
         nz = np.abs(n[:, 2]) / np.maximum(np.linalg.norm(n, axis=1), 1e-300)
-        steep = valid & (nz[np.maximum(hits.triangle, 0)] < np.cos(np.radians(float(max_angle_deg))))
+        steep = valid & (
+            nz[np.maximum(hits.triangle, 0)] < np.cos(np.radians(float(max_angle_deg)))
+        )
         valid &= ~steep
     if not valid.any():
         raise ScanFormatError(
             f"no ray of the {nr} x {nc} grid ({res:g} mm) hits the mesh inside the window "
-            f"{lo.tolist()}..{hi.tolist()} mm; check the bounds and that the face looks along +z.")
+            f"{lo.tolist()}..{hi.tolist()} mm; check the bounds and that the face looks along +z."
+        )
     if noise_mm > 0:
         rng = np.random.default_rng(seed)
         xyz[valid, 2] += rng.normal(0.0, float(noise_mm), int(valid.sum()))
     xyz[~valid] = 0.0
-    scan = Scan.from_grid(xyz, valid, zmin=zmin, image_name=image_name, landmarks=landmarks, path=path)
+    scan = Scan.from_grid(
+        xyz, valid, zmin=zmin, image_name=image_name, landmarks=landmarks, path=path
+    )
     if return_hits:
         if not np.array_equal(valid, hits.valid):
             hits = dataclasses.replace(
-                hits, valid=valid, triangle=np.where(valid, hits.triangle, -1),
+                hits,
+                valid=valid,
+                triangle=np.where(valid, hits.triangle, -1),
                 bary=np.where(valid[..., None], hits.bary, 0.0),
-                xyz=np.where(valid[..., None], hits.xyz, np.nan))
+                xyz=np.where(valid[..., None], hits.xyz, np.nan),
+            )
         return scan, hits
     return scan
 
@@ -372,16 +422,18 @@ class SkinLandmarks:
     skin_triangles: np.ndarray
 
     @classmethod
-    def bind(cls, rest, triangles, landmarks: "Landmarks") -> "SkinLandmarks":
+    def bind(cls, rest, triangles, landmarks: Landmarks) -> SkinLandmarks:
         """Bind ``landmarks`` (mm) to the rest skin ``(V, 3)`` mm with ``(F, 3)`` triangles."""
         from ..fit.metrics import SurfaceIndex
 
         tris = np.asarray(triangles)
-        cp = SurfaceIndex(np.asarray(rest, dtype=np.float64), tris).query(np.asarray(landmarks.positions))
+        cp = SurfaceIndex(np.asarray(rest, dtype=np.float64), tris).query(
+            np.asarray(landmarks.positions)
+        )
         return cls(tuple(landmarks.names), np.asarray(cp.triangles), np.asarray(cp.bary), tris)
 
     @classmethod
-    def of_rig(cls, rig) -> "SkinLandmarks":
+    def of_rig(cls, rig) -> SkinLandmarks:
         """The rig's own landmarks (``rig.info.landmarks``) on its rest skin."""
         return cls.bind(np.asarray(rig.rest), np.asarray(rig.triangles), rig.info.landmarks)
 
@@ -390,15 +442,21 @@ class SkinLandmarks:
         x = np.asarray(vertices, dtype=np.float64)
         return np.einsum("kc,kcd->kd", self.bary, x[self.skin_triangles[self.triangles]])
 
-    def landmarks(self, vertices) -> "Landmarks":
+    def landmarks(self, vertices) -> Landmarks:
         """The same as a :class:`jaxface.landmarks.Landmarks`."""
         from ..landmarks import Landmarks
 
         return Landmarks(list(self.names), self.positions(vertices))
 
 
-def scan_skin(vertices, bound: SkinLandmarks, resolution: float = 1.0, *,
-              max_angle_deg: float | None = 80.0, **kwargs) -> "Scan":
+def scan_skin(
+    vertices,
+    bound: SkinLandmarks,
+    resolution: float = 1.0,
+    *,
+    max_angle_deg: float | None = 80.0,
+    **kwargs,
+) -> Scan:
     """Bosphorus-style scan of a (simulated) skin with its landmarks carried along.
 
     Args:
@@ -412,5 +470,10 @@ def scan_skin(vertices, bound: SkinLandmarks, resolution: float = 1.0, *,
         the grid :class:`jaxface.io.Scan` (mm) with the landmarks at their deformed positions.
     """
     x = np.asarray(vertices, dtype=np.float64)
-    return scan_mesh((x, bound.skin_triangles), resolution, landmarks=bound.landmarks(x),
-                     max_angle_deg=max_angle_deg, **kwargs)
+    return scan_mesh(
+        (x, bound.skin_triangles),
+        resolution,
+        landmarks=bound.landmarks(x),
+        max_angle_deg=max_angle_deg,
+        **kwargs,
+    )

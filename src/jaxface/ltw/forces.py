@@ -142,8 +142,13 @@ def volume_forces(
     dV = A * (thick - tissue.elem_rest_thickness)
     mag = -params.k_volume * dV / tissue.elem_ref_volume * A / 3.0  # (F,)
     fv = mag[:, None, None] * jnp.concatenate(
-        [jnp.broadcast_to(n[:, None, :], (ex.shape[0], 3, 3)), jnp.zeros_like(ex[:, 3:6]),
-         -jnp.broadcast_to(n[:, None, :], (ex.shape[0], 3, 3))], axis=1)
+        [
+            jnp.broadcast_to(n[:, None, :], (ex.shape[0], 3, 3)),
+            jnp.zeros_like(ex[:, 3:6]),
+            -jnp.broadcast_to(n[:, None, :], (ex.shape[0], 3, 3)),
+        ],
+        axis=1,
+    )
     f = fv - params.k_shape * dp
     return jax.ops.segment_sum(
         f.reshape(-1, 3), tissue.elements.reshape(-1), num_segments=x.shape[0]

@@ -44,10 +44,10 @@ import numpy as np
 from ..errors import RigError
 from .forces import (
     internal_forces,
-    safe_length,
     kinematic_positions,
     preconditioner,
     remove_inward,
+    safe_length,
     skull_frame,
     skull_gate,
 )
@@ -334,7 +334,9 @@ def _rest_stiffness(tissue: LTWTissue, params: LTWParams):
         M9 = k2 * (np.eye(9) - np.full((9, 9), 1.0 / 9.0))
         I = np.repeat(el, 9, axis=1).reshape(-1)
         J = np.tile(el, (1, 9)).reshape(-1)
-        blocks = np.broadcast_to(M9.reshape(1, 81, 1, 1) * np.eye(3), (F, 81, 3, 3)).reshape(-1, 3, 3)
+        blocks = np.broadcast_to(M9.reshape(1, 81, 1, 1) * np.eye(3), (F, 81, 3, 3)).reshape(
+            -1, 3, 3
+        )
         add_blocks(I, J, blocks)
     k1 = float(params.k_volume)
     if k1 != 0.0:
@@ -419,5 +421,6 @@ def make_model(
     """Assemble an :class:`LTWModel`, estimating the quasi-static constants (build time)."""
     params = LTWParams() if params is None else params
     a0, b = quasi_static_constants(tissue, params, safety=safety)
-    return LTWModel(tissue=tissue, muscles=muscles, params=params, qs_alpha0=float(a0), qs_beta=float(b))
-
+    return LTWModel(
+        tissue=tissue, muscles=muscles, params=params, qs_alpha0=float(a0), qs_beta=float(b)
+    )

@@ -30,8 +30,9 @@ def emotion_faces(rig, synth, intensity: float = 1.0) -> dict[str, np.ndarray]:
     return out
 
 
-def compare_emotions(path, ltw_rig: LTWRig, pbd_rig=None, *, intensity: float = 1.0,
-                     px: int = 300, view="front") -> Path:
+def compare_emotions(
+    path, ltw_rig: LTWRig, pbd_rig=None, *, intensity: float = 1.0, px: int = 300, view="front"
+) -> Path:
     """Write the six emotions, LTW next to PBD, to a PNG.
 
     Args:
@@ -59,7 +60,9 @@ def compare_emotions(path, ltw_rig: LTWRig, pbd_rig=None, *, intensity: float = 
         if tuple(pbd_rig.muscle_names) != tuple(ltw_rig.muscle_names):
             from ..errors import RigError
 
-            raise RigError("the PBD and LTW rigs have different controls; build both from the same map.")
+            raise RigError(
+                "the PBD and LTW rigs have different controls; build both from the same map."
+            )
         from ..anatomy.rig import synthesize
 
         faces = {"PBD": emotion_faces(pbd_rig, synthesize, intensity), **faces}
@@ -69,7 +72,9 @@ def compare_emotions(path, ltw_rig: LTWRig, pbd_rig=None, *, intensity: float = 
     bounds = np.stack([lo - pad, hi + pad])
     rows = ("neutral",) + EMOTION_ORDER
     cols = list(faces) + (["|PBD - LTW|"] if pbd_rig is not None else [])
-    fig, axs = plt.subplots(len(rows), len(cols), figsize=(2.6 * len(cols), 2.7 * len(rows)), squeeze=False)
+    fig, axs = plt.subplots(
+        len(rows), len(cols), figsize=(2.6 * len(cols), 2.7 * len(rows)), squeeze=False
+    )
     vmax = 0.0
     if pbd_rig is not None:
         diffs = {r: np.linalg.norm(faces["PBD"][r] - faces["LTW"][r], axis=1) for r in rows}
@@ -79,7 +84,9 @@ def compare_emotions(path, ltw_rig: LTWRig, pbd_rig=None, *, intensity: float = 
             ax = axs[i, j]
             ax.axis("off")
             if c.startswith("|"):
-                layer = Layer(faces["LTW"][r], tris, scalars=diffs[r], cmap="magma", vmin=0.0, vmax=vmax)
+                layer = Layer(
+                    faces["LTW"][r], tris, scalars=diffs[r], cmap="magma", vmin=0.0, vmax=vmax
+                )
                 title = f"{r}: max {diffs[r].max():.1f} mm"
             else:
                 layer = Layer(faces[c][r], tris)
@@ -88,8 +95,10 @@ def compare_emotions(path, ltw_rig: LTWRig, pbd_rig=None, *, intensity: float = 
             img = rasterize([layer], view=view, width=px, height=px, bounds=bounds).image
             ax.imshow(img)
             ax.set_title(title, fontsize=8)
-    fig.suptitle(f"emotions, intensity {intensity:g}" + (f"; heat map 0..{vmax:.1f} mm" if vmax else ""),
-                 fontsize=10)
+    fig.suptitle(
+        f"emotions, intensity {intensity:g}" + (f"; heat map 0..{vmax:.1f} mm" if vmax else ""),
+        fontsize=10,
+    )
     fig.tight_layout()
     from ..render import save_figure
 

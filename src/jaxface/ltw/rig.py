@@ -40,7 +40,14 @@ from .integrate import LTWModel, make_model, relax, residual
 from .tissue import LTWParams, build_tissue
 from .waters import Fibre, build_waters, linear_fibre, sphincter_fibres
 
-__all__ = ["LTWRig", "LTWInfo", "build_ltw_rig", "synthesize_ltw", "synthesize_nodes", "equilibrium_residual"]
+__all__ = [
+    "LTWRig",
+    "LTWInfo",
+    "build_ltw_rig",
+    "synthesize_ltw",
+    "synthesize_nodes",
+    "equilibrium_residual",
+]
 
 
 class LTWInfo:
@@ -129,16 +136,18 @@ class LTWRig(eqx.Module):
             a[self.index(k)] = float(v)
         return jnp.asarray(a)
 
-    def with_params(self, **kw) -> "LTWRig":
+    def with_params(self, **kw) -> LTWRig:
         """A copy with some :class:`LTWParams` fields replaced (quasi-static constants kept)."""
         p = self.model.params
         for k, v in kw.items():
             if not hasattr(p, k):
                 raise RigError(f"unknown LTW parameter {k!r}; see jaxface.ltw.LTWParams.")
-            p = eqx.tree_at(lambda q, k=k: getattr(q, k), p, jnp.asarray(v, dtype=getattr(p, k).dtype))
+            p = eqx.tree_at(
+                lambda q, k=k: getattr(q, k), p, jnp.asarray(v, dtype=getattr(p, k).dtype)
+            )
         return eqx.tree_at(lambda r: r.model.params, self, p)
 
-    def with_iterations(self, n_steps: int) -> "LTWRig":
+    def with_iterations(self, n_steps: int) -> LTWRig:
         """A copy with another static number of relaxation steps."""
         import dataclasses
 
@@ -155,7 +164,9 @@ def _as_mesh(skin):
         return skin, None
     if hasattr(skin, "mesh") and isinstance(skin.mesh, TriMesh):
         return skin.mesh, skin
-    raise RigError(f"build_ltw_rig needs the skin as a jaxface TriMesh (mm), got {type(skin).__name__}.")
+    raise RigError(
+        f"build_ltw_rig needs the skin as a jaxface TriMesh (mm), got {type(skin).__name__}."
+    )
 
 
 def _skull_columns(mesh, frame, skull, depth):
@@ -215,7 +226,11 @@ def _fibres_for(pm, ci, frame, mean_edge):
             b = float(np.abs((mid - c) @ v).max())
         inner = np.asarray(pm.insertion, float)
         outer = np.asarray(pm.origin, float)
-        band = 0.5 * float(np.mean(np.linalg.norm(outer - inner, axis=1))) if len(inner) == len(outer) else 0.5 * b
+        band = (
+            0.5 * float(np.mean(np.linalg.norm(outer - inner, axis=1)))
+            if len(inner) == len(outer)
+            else 0.5 * b
+        )
         width = max(band, 2.5 * mean_edge)
         return sphincter_fibres(c, u, v, a, b, m, n_segments=4, width=width)
     return []
@@ -294,7 +309,10 @@ def build_ltw_rig(
         angles = np.zeros((len(names), 2))
         for s in controls:
             if s.kind == "eyelid" and s.side == side and s.angles_deg:
-                angles[ci[s.name]] = (float(s.angles_deg.get("upper", 0.0)), float(s.angles_deg.get("lower", 0.0)))
+                angles[ci[s.name]] = (
+                    float(s.angles_deg.get("upper", 0.0)),
+                    float(s.angles_deg.get("lower", 0.0)),
+                )
         if not np.any(angles):
             continue
         ids, fall, upper = eyelid_vertices(mesh, frame, side, eyelid_threshold)
@@ -346,8 +364,17 @@ def build_ltw_rig(
 
     fdt = tissue.rest.dtype
     nS = len(piv)
-    info = LTWInfo(skin=mesh, landmarks=landmarks, frame=frame, skull=skull, placed=placed,
-                   specs=specs, depth=np.asarray(depth, float), mandible=mand, fibres=fibres)
+    info = LTWInfo(
+        skin=mesh,
+        landmarks=landmarks,
+        frame=frame,
+        skull=skull,
+        placed=placed,
+        specs=specs,
+        depth=np.asarray(depth, float),
+        mandible=mand,
+        fibres=fibres,
+    )
     return LTWRig(
         model=model,
         jaw=jaw,

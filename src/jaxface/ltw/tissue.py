@@ -353,7 +353,9 @@ def build_tissue(
     v = np.asarray(vertices, dtype=float)
     t = np.asarray(triangles)
     if v.ndim != 2 or v.shape[1] != 3:
-        raise MeshError(f"skin vertices must have shape (V, 3), got {v.shape}.", problem="bad_shape")
+        raise MeshError(
+            f"skin vertices must have shape (V, 3), got {v.shape}.", problem="bad_shape"
+        )
     bad = np.flatnonzero(~np.isfinite(v).all(axis=1))
     if len(bad):
         raise MeshError(
@@ -421,8 +423,12 @@ def build_tissue(
         from ..mesh import TriMesh
 
         dirs = col / np.maximum(clen, 1e-300)[:, None]
-        hits = TriMesh(v, t, validate=False).ray_cast(v, dirs, min_distance=1e-3 * float(np.median(clen)),
-                                                      max_distance=float(clen.max()) * 2.0)
+        hits = TriMesh(v, t, validate=False).ray_cast(
+            v,
+            dirs,
+            min_distance=1e-3 * float(np.median(clen)),
+            max_distance=float(clen.max()) * 2.0,
+        )
         dh = np.full(V, np.inf)
         dh[np.asarray(hits.hit)] = np.asarray(hits.distances)
         fdep = np.minimum(fdep, float(self_clearance) * dh)
@@ -477,7 +483,8 @@ def build_tissue(
     nrm_e = np.where(area_true[:, None] > 0, cr / np.maximum(2.0 * area_true, 1e-300)[:, None], 0.0)
     thick0 = np.einsum("fk,fk->f", ex[:, 0:3].mean(axis=1) - ex[:, 6:9].mean(axis=1), nrm_e)
     emax2 = np.max(
-        np.stack([np.sum((ex[:, i] - ex[:, (i + 1) % 3]) ** 2, axis=1) for i in range(3)], 1), axis=1
+        np.stack([np.sum((ex[:, i] - ex[:, (i + 1) % 3]) ** 2, axis=1) for i in range(3)], 1),
+        axis=1,
     )
     # reference volume of the bulk energy: (area floored at a fifth of the squared longest
     # edge, for slivers) x (mean skin-to-skull depth); always > 0, also for folded elements

@@ -226,16 +226,22 @@ def build_waters(
     for fi, fb in enumerate(fibres):
         pts = np.asarray(fb.points, float)
         if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 2 or not np.isfinite(pts).all():
-            raise RigError(f"fibre {fi} (muscle {fb.muscle}) needs (K>=2, 3) finite points, got {pts.shape}.")
+            raise RigError(
+                f"fibre {fi} (muscle {fb.muscle}) needs (K>=2, 3) finite points, got {pts.shape}."
+            )
         if not (0 <= fb.muscle < n_muscles):
             raise RigError(f"fibre {fi} refers to muscle {fb.muscle}, outside 0..{n_muscles - 1}.")
         if not (fb.width > 0 and np.isfinite(fb.width)):
-            raise RigError(f"fibre {fi} (muscle {fb.muscle}) has width {fb.width} mm; it must be > 0.")
+            raise RigError(
+                f"fibre {fi} (muscle {fb.muscle}) has width {fb.width} mm; it must be > 0."
+            )
         seg = np.diff(pts, axis=0)
         slen = np.linalg.norm(seg, axis=1)
         keep = slen > 1e-9
         if not keep.any():
-            raise RigError(f"fibre {fi} (muscle {fb.muscle}) has zero length: origin equals insertion.")
+            raise RigError(
+                f"fibre {fi} (muscle {fb.muscle}) has zero length: origin equals insertion."
+            )
         # drop zero-length segments
         pts = np.concatenate([pts[:1], pts[1:][keep]], axis=0)
         seg = np.diff(pts, axis=0)
@@ -250,9 +256,15 @@ def build_waters(
         ln = np.linalg.norm(n, axis=1)
         fallback = np.cross(m, np.array([1.0, 0.0, 0.0]))
         fallback = np.where(
-            np.linalg.norm(fallback, axis=1, keepdims=True) < 1e-6, np.cross(m, np.array([0.0, 1.0, 0.0])), fallback
+            np.linalg.norm(fallback, axis=1, keepdims=True) < 1e-6,
+            np.cross(m, np.array([0.0, 1.0, 0.0])),
+            fallback,
         )
-        n = np.where(ln[:, None] > 1e-6, n / np.maximum(ln, 1e-300)[:, None], fallback / np.linalg.norm(fallback, axis=1, keepdims=True))
+        n = np.where(
+            ln[:, None] > 1e-6,
+            n / np.maximum(ln, 1e-300)[:, None],
+            fallback / np.linalg.norm(fallback, axis=1, keepdims=True),
+        )
         # nearest segment of every candidate node (rest)
         rel = X[:, None, :] - pts[None, :-1, :]  # (V, L, 3)
         tpar = np.clip(np.einsum("vlk,lk->vl", rel, m) / slen[None], 0.0, 1.0)
@@ -266,7 +278,13 @@ def build_waters(
         pn = np.einsum("vk,vk->v", p, Nl)
         lat = p - pn[:, None] * Nl
         omega = np.linalg.norm(lat, axis=1)
-        sel = cand & (omega < fb.width) & (eps > -0.02) & (eps < 1.0 + eps_tail) & (np.abs(pn) < depth_reach)
+        sel = (
+            cand
+            & (omega < fb.width)
+            & (eps > -0.02)
+            & (eps < 1.0 + eps_tail)
+            & (np.abs(pn) < depth_reach)
+        )
         idx = np.flatnonzero(sel)
         P_node.append(ids[idx])
         P_seg.append(gseg + l_near[idx])
@@ -361,5 +379,11 @@ def muscle_forces(
     lat = p - jnp.sum(p * ns, axis=-1, keepdims=True) * ns
     q = jnp.sum(lat * lat, axis=-1) / muscles.seg_width[seg] ** 2
     a = jnp.asarray(activations)[muscles.seg_muscle[seg]]
-    mag = a * params.muscle_force * muscles.seg_gain[seg] * theta1(eps, muscles.eps_full, muscles.eps_tail) * theta2(q)
+    mag = (
+        a
+        * params.muscle_force
+        * muscles.seg_gain[seg]
+        * theta1(eps, muscles.eps_full, muscles.eps_tail)
+        * theta2(q)
+    )
     return jax.ops.segment_sum(mag[:, None] * ms, muscles.pair_node, num_segments=x.shape[0])
