@@ -38,13 +38,14 @@ TRUE_PITCH = 5.0
 @pytest.fixture(scope="module")
 def round_trip():
     from jaxface.anatomy.jaw import JawPose
-    from jaxface.anatomy.rig import build_rig, synthesize
+    from jaxface.anatomy.rig import Rig, build_rig, synthesize
     from jaxface.fit.pipeline import SubjectOptions, fit_expressions, subject_from_rig
     from jaxface.head import generic_head
     from jaxface.io.scanner import SkinLandmarks, scan_skin
 
     head = generic_head()
     rig = build_rig(head)
+    assert isinstance(rig, Rig)  # the PBD backend
     bound = SkinLandmarks.of_rig(rig)
 
     def scan_of(x):
@@ -695,13 +696,14 @@ def test_bound_flip_restart_leaves_a_minimum_with_a_saturated_control():
     (1.22e-2 mm^2, restarted to 2.07e-3); with the inner steps' QR solve, levator anguli oris L
     alone (5.5e-3 mm^2, restarted to 1.2e-5)."""
     from jaxface.anatomy.jaw import JawPose
-    from jaxface.anatomy.rig import build_rig, synthesize
+    from jaxface.anatomy.rig import Rig, build_rig, synthesize
     from jaxface.fit.pipeline import SubjectOptions, fit_expressions, subject_from_rig
     from jaxface.head import generic_head
     from jaxface.io.scanner import SkinLandmarks, scan_skin
 
     head = generic_head()
     rig = build_rig(head)
+    assert isinstance(rig, Rig)  # the PBD backend
     bound = SkinLandmarks.of_rig(rig)
     truth = {
         "buccinator_R": 1.0,

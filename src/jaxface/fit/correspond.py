@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from ..errors import FitError
 from .metrics import SurfaceIndex
@@ -91,7 +92,7 @@ class Correspondences:
 def find_correspondences(
     skin,
     triangles: np.ndarray,
-    face_triangles: np.ndarray,
+    face_triangles: ArrayLike,
     local_ids: np.ndarray,
     points: np.ndarray,
     point_normals: np.ndarray | None,
