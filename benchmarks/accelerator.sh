@@ -7,7 +7,7 @@
 # part cannot take the others' time, and in this order:
 #   1. bench_fit.py on subject bs900 (no round trip, no B2): subject build, one scan alone cold
 #      and warm, the 10 expression scans as one batch (on an accelerator the inner solves of a
-#      batch are one jax.vmap, jaxface.fit.solve.batch_mode), the batch again once compiled,
+#      batch are one jax.vmap, jaxface.fit.inner.batch_mode), the batch again once compiled,
 #      accuracy against the truth meshes, then the same scans one at a time (singles_over_batch,
 #      singles_over_warm_batch);
 #   2. bench_synth.py (float32, ICT face): one synthesis, vmap throughput, forward Jacobian,
@@ -37,7 +37,7 @@ for name in ("jaxlib", "equinox", "optimistix", "lineax", "numpy", "scipy", "tri
     m = importlib.import_module(name)
     print(name, getattr(m, "__version__", "?"))
 import jaxface
-from jaxface.fit.solve import batch_mode
+from jaxface.fit.inner import batch_mode
 print("jaxface", jaxface.__file__, "| batch mode", batch_mode())
 x = jnp.ones((4, 4), jnp.float64) @ jnp.ones((4, 4), jnp.float64)
 print("float64 matmul ok:", float(x[0, 0]) == 4.0)

@@ -31,7 +31,7 @@ Measures (units mm, degrees, seconds):
   scans it applies to, the ratio B0 / fit, scan-to-fit metrics, solver status and steps, jaw pose, and the AU readout: the
   rank of each AU named by the file's code among the fitted bilateral AUs (and the side for
   ``LFAU_12L``), by intensity (:func:`jaxface.facs.au_intensities`), by the skin motion each
-  AU accounts for (:func:`jaxface.fit.au_motion.au_motion`, mm) and by the sparse readout
+  AU accounts for (:func:`jaxface.fit.au_motion.au_skin_motion`, mm) and by the sparse readout
   (:func:`jaxface.fit.au_motion.au_sparse`: the fewest AUs that reproduce the fit's motion);
 * the neutral scans: registration error (B0 of ``N_N``) against the truth;
 * time per expression scan: one scan alone (cold: includes compiling the solver; warm: a
@@ -211,20 +211,20 @@ def _jacobian_timing(fit, repeats: int = 20) -> dict:
     custom forward-mode rule the fit uses and with plain forward-mode autodiff, side by side."""
     import jax
 
-    from jaxface.fit.solve import _data_vector, _data_vector_plain
+    from jaxface.fit.residuals import data_vector, data_vector_plain
 
     pts, y = fit.points, fit.y
     M = pts.free.shape[0]
     a = jax.numpy.full(M, 0.3)
     out = {}
-    for label, fn in (("rule", _data_vector), ("plain", _data_vector_plain)):
+    for label, fn in (("rule", data_vector), ("plain", data_vector_plain)):
         jac = jax.jit(
             jax.jacfwd(lambda a_, j_, r_, p_: fn(a_, j_, r_, p_, True), argnums=(0, 1, 2))
         )
-        jax.block_until_ready(jac(a, y["jaw"], y["rigid"], pts))
+        jax.block_until_ready(jac(a, y.jaw, y.rigid, pts))
         t = time.perf_counter()
         for _ in range(repeats):
-            jax.block_until_ready(jac(a, y["jaw"], y["rigid"], pts))
+            jax.block_until_ready(jac(a, y.jaw, y.rigid, pts))
         out[f"{label}_ms"] = 1e3 * (time.perf_counter() - t) / repeats
     out["plain_over_rule"] = out["plain_ms"] / out["rule_ms"]
     out["n_residuals"] = int(pts.normal.shape[0] + 3 * pts.w_landmark.shape[0])
@@ -393,8 +393,10 @@ def round_trip(which: str, opt_kw: dict) -> dict:
     """Synthesise -> scan -> fit back on the default head (or the ICT face)."""
     from jaxface.anatomy.jaw import JawPose
     from jaxface.anatomy.rig import build_rig, synthesize
+    from jaxface.fit.conditioning import jacobian_conditioning
+    from jaxface.fit.options import FitOptions
     from jaxface.fit.pipeline import SubjectOptions, fit_expressions, subject_from_rig
-    from jaxface.fit.solve import FitOptions, jacobian_conditioning, make_priors
+    from jaxface.fit.residuals import make_priors
     from jaxface.io.scanner import SkinLandmarks, scan_skin
 
     t0 = time.perf_counter()
@@ -566,7 +568,7 @@ def main() -> None:
 
     jax.config.update("jax_enable_x64", True)
     from jaxface.fit.evaluation import load_truth
-    from jaxface.fit.solve import FitOptions
+    from jaxface.fit.options import FitOptions
 
     truth = load_truth()
     kw = dict(exact_steps=args.exact_steps, gradient_correction=not args.no_gradient_correction)

@@ -50,7 +50,7 @@ def main() -> None:
     from jaxface.anatomy.jaw import JawPose
     from jaxface.anatomy.rig import build_rig, synthesize
     from jaxface.fit.pipeline import SubjectOptions, fit_expressions, subject_from_rig
-    from jaxface.fit.solve import FitOptions
+    from jaxface.fit.options import FitOptions
     from jaxface.head import generic_head
     from jaxface.io.scanner import SkinLandmarks, scan_skin
 

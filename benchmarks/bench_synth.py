@@ -44,7 +44,7 @@ region, 9,409 vertices, with its teeth):
   alternately, with their compile times and the largest difference of the two gradients;
   and the fit's per-iteration pair, the skin and its reverse pass, as a forward call beside a
   jitted forward+reverse (``separate``) or as one ``jax.vjp`` whose skin and VJP leave the jit
-  (``fused``, :func:`jaxface.fit.solve.exact_skin_and_vjp`), timed alternately.
+  (``fused``, :func:`jaxface.fit.forward.exact_skin_and_vjp`), timed alternately.
 Timings are wall-clock on whatever machine runs it (say which when you quote them).
 """
 
@@ -154,7 +154,7 @@ def _reverse_pass(rig, a, jaw, dt, *, repeat: int) -> dict:
     # the fit's outer iteration needs the skin (correspondences) and the reverse pass
     # (gradient correction): a forward call beside a jitted forward+reverse, or one jitted
     # jax.vjp whose skin and VJP leave the jit and a second jit that applies the VJP
-    # (jaxface.fit.solve.exact_skin_and_vjp), timed alternately
+    # (jaxface.fit.forward.exact_skin_and_vjp), timed alternately
     fwd = jax.jit(lambda t: synthesize(rig, t[:-1], JawPose(t[-1])))
     vjp_of = jax.jit(lambda t: jax.vjp(lambda u: synthesize(rig, u[:-1], JawPose(u[-1])), t))
     apply = jax.jit(lambda f, c: f(c)[0])

@@ -170,7 +170,7 @@ def test_fit_command_defaults_are_the_librarys():
     lazily); they must stay those of FitOptions and SubjectOptions."""
     from jaxface.commands import fit
     from jaxface.fit.pipeline import SubjectOptions
-    from jaxface.fit.solve import FitOptions
+    from jaxface.fit.options import FitOptions
 
     app = typer.Typer()
     fit.register(app)
@@ -195,7 +195,7 @@ def test_fit_command_refuses_an_unknown_restart_trigger(tmp_path):
     """``--restart-when`` takes FitOptions' values only; anything else is a usage error (exit
     2) naming the option and the values, before any file is read."""
     from jaxface.commands import fit
-    from jaxface.fit.solve import RESTART_WHEN
+    from jaxface.fit.options import RESTART_WHEN
 
     assert tuple(w.value for w in fit.RestartWhen) == RESTART_WHEN
     app = typer.Typer()

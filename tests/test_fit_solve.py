@@ -1,197 +1,19 @@
-"""The inverse fit (jaxface.fit.solve / pipeline): the reduced model's splines and their custom
-derivative rule, the bounded activation map, the rigid correction, correspondences, the
-active set of the activation bounds, and a synthetic round trip on the default head (rig ->
-virtual scan -> fit back), in a reduced setting (six controls and the jaw)."""
+"""The inverse fit end to end (jaxface.fit.solve / pipeline) on a synthetic round trip on the
+default head (rig -> virtual scan -> fit back) in a reduced setting (six controls and the jaw):
+recovery, the AU readouts, the residuals' derivative rule and gradient correction, the inner
+solves' batch modes, convergence, restarts and the exact forward model. The parts' own unit
+tests are in test_fit_{options,params,reduced,correspond,active_set,inner}.py."""
+
+import dataclasses
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
 from jaxface.errors import FitError
-from jaxface.fit.solve import (
-    FitOptions,
-    _hermite_parts,
-    _hermite_slopes,
-    activations_from_z,
-    apply_rigid,
-    find_correspondences,
-    hermite_sum,
-    rotation_from_rotvec_deg,
-    update_active_set,
-    z_from_activations,
-)
-
-
-# ------------------------------------------------------------------------------ splines
-def _quadratic_tables(knots, M=3, K=5, seed=0):
-    rng = np.random.default_rng(seed)
-    c = rng.normal(size=(M, 3, K, 3))  # per spline: c0 + c1 x + c2 x^2
-    f = lambda x: c[:, 0] + c[:, 1] * x + c[:, 2] * x * x  # noqa: E731
-    vals = np.stack([f(t) for t in knots], axis=1)  # (M, N, K, 3)
-    slopes = np.stack([_hermite_slopes(knots, vals[m]) for m in range(M)])
-    return c, vals, slopes
-
-
-def test_hermite_sum_reproduces_quadratics_between_nonuniform_knots():
-    knots = np.array([0.0, 0.15, 0.5, 0.6, 1.0])
-    c, vals, slopes = _quadratic_tables(knots)
-    x = np.array([0.07, 0.55, 0.93])
-    got = np.asarray(
-        hermite_sum(jnp.asarray(x), jnp.asarray(knots), jnp.asarray(vals), jnp.asarray(slopes))
-    )
-    want = sum(c[m, 0] + c[m, 1] * x[m] + c[m, 2] * x[m] ** 2 for m in range(3))
-    np.testing.assert_allclose(got, want, atol=1e-12)
-
-
-def test_hermite_sum_custom_derivative_matches_finite_differences():
-    knots = np.linspace(0.0, 1.0, 5)
-    rng = np.random.default_rng(1)
-    vals = jnp.asarray(rng.normal(size=(4, 5, 6, 3)))
-    slopes = jnp.asarray(rng.normal(size=(4, 5, 6, 3)))
-    kn = jnp.asarray(knots)
-    f = lambda x: hermite_sum(x, kn, vals, slopes)  # noqa: E731
-    # interior points off the knots, and points beyond the ends (linear continuation)
-    for x in (np.array([0.1, 0.33, 0.6, 0.9]), np.array([-0.3, 1.2, 0.45, 0.05])):
-        x = jnp.asarray(x)
-        J = jax.jacfwd(f)(x)  # (6, 3, 4) through the custom rule
-        h = 1e-6
-        fd = np.stack(
-            [(f(x.at[i].add(h)) - f(x.at[i].add(-h))) / (2 * h) for i in range(4)], axis=-1
-        )
-        np.testing.assert_allclose(np.asarray(J), fd, atol=1e-7)
-    # tangents of the tables fall back to plain autodiff (linear in the tables)
-    x = jnp.asarray([0.2, 0.4, 0.7, 0.95])
-    dv = jnp.asarray(rng.normal(size=vals.shape))
-    _, t = jax.jvp(lambda v: hermite_sum(x, kn, v, slopes), (vals,), (dv,))
-    np.testing.assert_allclose(
-        np.asarray(t), np.asarray(_hermite_parts(x, kn, dv, slopes * 0)[0]), atol=1e-12
-    )
-
-
-# ------------------------------------------------------------------------------ parameters
-def test_activation_map_is_bounded_smooth_and_invertible():
-    z = jnp.linspace(-3.0, 4.0, 701)
-    a = np.asarray(activations_from_z(z))
-    assert a.min() >= 0.0 and a.max() <= 1.0
-    # bounds are reached at finite parameters, with zero slope (no run-away at a bound)
-    g = jax.vmap(jax.grad(activations_from_z))
-    np.testing.assert_allclose(np.asarray(g(jnp.asarray([0.0, 1.0]))), 0.0, atol=1e-12)
-    np.testing.assert_allclose(
-        np.asarray(activations_from_z(jnp.asarray([0.0, 1.0]))), [0.0, 1.0], atol=1e-15
-    )
-    aa = jnp.asarray([0.0, 0.02, 0.5, 0.97, 1.0])
-    np.testing.assert_allclose(
-        np.asarray(activations_from_z(z_from_activations(aa))), aa, atol=1e-12
-    )
-
-
-def test_rotation_vector_matches_scipy_and_has_finite_gradient_at_zero():
-    w = np.array([3.0, -2.0, 5.0])
-    np.testing.assert_allclose(
-        np.asarray(rotation_from_rotvec_deg(jnp.asarray(w))),
-        Rotation.from_rotvec(np.radians(w)).as_matrix(),
-        atol=1e-12,
-    )
-
-    def f(v):
-        return jnp.sum(rotation_from_rotvec_deg(v) @ jnp.asarray([1.0, 2.0, 3.0]))
-
-    g0 = np.asarray(jax.grad(f)(jnp.zeros(3)))
-    assert np.all(np.isfinite(g0))
-    h = 1e-5
-    fd = np.array([(f(jnp.eye(3)[i] * h) - f(-jnp.eye(3)[i] * h)) / (2 * h) for i in range(3)])
-    np.testing.assert_allclose(g0, fd, atol=1e-8)
-
-
-# ------------------------------------------------------------------------------ correspondences
-def _plane(n=21, spacing=1.0):
-    xs = np.arange(n) * spacing - (n - 1) * spacing / 2
-    X, Y = np.meshgrid(xs, xs)
-    v = np.stack([X.ravel(), Y.ravel(), np.zeros(X.size)], 1)
-    ids = np.arange(n * n).reshape(n, n)
-    a, b, c, d = (
-        ids[:-1, :-1].ravel(),
-        ids[:-1, 1:].ravel(),
-        ids[1:, 1:].ravel(),
-        ids[1:, :-1].ravel(),
-    )
-    t = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
-    return v, t
-
-
-def test_correspondences_on_a_plane_signed_distance_rejection_and_weights():
-    v, t = _plane()
-    # face region: the central 10 x 10 mm (triangles whose vertices all lie inside)
-    inside = (np.abs(v[:, 0]) <= 5) & (np.abs(v[:, 1]) <= 5)
-    face_tri = inside[t].all(axis=1)
-    local = np.arange(len(v))
-    rng = np.random.default_rng(0)
-    q = np.column_stack([rng.uniform(-4, 4, 40), rng.uniform(-4, 4, 40), rng.uniform(0.1, 1.0, 40)])
-    q = np.vstack(
-        [
-            q,
-            [[0.0, 0.0, 30.0]],  # too far
-            [[8.0, 0.0, 0.2]],  # beyond the face region's border
-            [[1.0, 1.0, 2.5]],
-        ]
-    )  # an outlier for the robust weights
-    valid = np.ones(len(q), bool)
-    nrm = np.tile([0.0, 0.0, 1.0], (len(q), 1))
-    c = find_correspondences(
-        v, t, face_tri, local, q, nrm, valid, max_distance=5.0, robust_floor=0.5
-    )
-    np.testing.assert_allclose(c.distance[:40], -q[:40, 2], atol=1e-12)  # n . (S - q), n = +z
-    assert c.weight[40] == 0 and c.weight[41] == 0
-    assert c.weight[42] == 0  # |r| = 2.5 mm beyond the Tukey cut-off (MAD scale, floor 0.5)
-    assert np.all(c.weight[:40] > 0)
-    np.testing.assert_allclose(c.weight.sum(), 1.0)
-    # the surface points reproduce the footprints of the queries
-    pts = np.einsum("kc,kcd->kd", c.bary[:40], v[t[c.tri[:40]]])
-    np.testing.assert_allclose(pts[:, :2], q[:40, :2], atol=1e-12)
-    with pytest.raises(FitError, match="no scan point"):
-        find_correspondences(
-            v,
-            t,
-            face_tri,
-            local,
-            q[:40] + [0, 0, 50],
-            nrm[:40],
-            valid[:40],
-            max_distance=5.0,
-            robust_floor=0.5,
-        )
-
-
-def test_active_set_holds_and_releases_bounds_by_the_gradient_sign():
-    a = np.array([0.0005, 0.9995, 0.5, 0.0, 1.0, 0.0, 0.004])
-    g = np.array([0.3, -0.2, 1.0, -0.5, -0.1, 0.2, 1e-6])
-    free = np.array([1, 1, 1, 0, 0, 0, 1], float)
-    zf = np.array([0, 0, 0, 0, 1, 0, 0], float)
-    f2, z2, zs, n = update_active_set(
-        a, g, free, zf, tol_g=1e-4, locked=[False] * 5 + [True, False]
-    )
-    # 0: pushed below 0 -> held at 0; 1: pushed above 1 -> held at 1; 2: interior stays free;
-    # 3: held at 0 but the gradient points inside -> released; 4: held at 1, gradient pushes
-    # further out -> stays; 5: locked at 0 whatever the gradient; 6: near 0 but inside the
-    # gradient dead band (its optimum lies just above 0) -> stays free
-    np.testing.assert_array_equal(f2, [0, 0, 1, 1, 0, 0, 1])
-    np.testing.assert_array_equal(z2[[0, 1, 4, 5]], [0, 1, 1, 0])
-    assert n == 3 and np.isfinite(zs[3]) and np.isnan(zs[[0, 1, 2, 4, 5, 6]]).all()
-    assert 0.0 < float(activations_from_z(zs[3])) < 0.05
-    # anti-cycling: a held activation marked `keep` is not released whatever its gradient
-    f3, _, zs3, n3 = update_active_set(
-        a,
-        g,
-        free,
-        zf,
-        tol_g=1e-4,
-        locked=[False] * 5 + [True, False],
-        keep=[False, False, False, True, False, False, False],
-    )
-    assert f3[3] == 0 and np.isnan(zs3[3]) and n3 == 2
-
+from jaxface.fit.options import FitOptions
+from jaxface.fit.params import activations_from_z, apply_rigid, z_from_activations
 
 # ------------------------------------------------------------------------------ round trip
 CONTROLS = (
@@ -216,13 +38,14 @@ TRUE_PITCH = 5.0
 @pytest.fixture(scope="module")
 def round_trip():
     from jaxface.anatomy.jaw import JawPose
-    from jaxface.anatomy.rig import build_rig, synthesize
+    from jaxface.anatomy.rig import Rig, build_rig, synthesize
     from jaxface.fit.pipeline import SubjectOptions, fit_expressions, subject_from_rig
     from jaxface.head import generic_head
     from jaxface.io.scanner import SkinLandmarks, scan_skin
 
     head = generic_head()
     rig = build_rig(head)
+    assert isinstance(rig, Rig)  # the PBD backend
     bound = SkinLandmarks.of_rig(rig)
 
     def scan_of(x):
@@ -378,11 +201,11 @@ def test_sparse_au_readout_of_the_round_trip_names_its_aus(round_trip):
 
 
 def test_au_motion_sparse_terms_equal_the_dense_reduced_model(round_trip):
-    """au_motion sums only each share's own muscle terms; the same number comes from the whole
+    """au_skin_motion sums only each share's own muscle terms; the same number comes from the whole
     reduced model evaluated at the share (every muscle, the jaw at rest), and for arbitrary
     activations (all muscles on, values between the knots and at the ends)."""
     from jaxface.facs import au_decomposition
-    from jaxface.fit.au_motion import au_motion
+    from jaxface.fit.au_motion import au_skin_motion
 
     subject = round_trip[0]
     names = list(subject.muscle_names)
@@ -390,7 +213,7 @@ def test_au_motion_sparse_terms_equal_the_dense_reduced_model(round_trip):
     rng = np.random.default_rng(3)
     a = rng.uniform(0.0, 1.0, len(names))
     a[:3] = [0.0, 1.0, 0.5]
-    mo = au_motion(model, a, np.array([7.0, 1.5, 0.8]), names)
+    mo = au_skin_motion(model, a, np.array([7.0, 1.5, 0.8]), names)
     aus, inten, rows = au_decomposition(a, names)
     zero = np.zeros(len(names))
     base = np.asarray(model.displacement(jnp.asarray(zero), jnp.zeros(3)))
@@ -425,7 +248,7 @@ def test_data_residual_jacobian_rule_equals_plain_autodiff(round_trip):
     point set (which go through plain autodiff)."""
     import dataclasses
 
-    from jaxface.fit.solve import _data_vector, _data_vector_plain
+    from jaxface.fit.residuals import data_vector, data_vector_plain
 
     pts = round_trip[1].fit.points
     y = round_trip[1].fit.y
@@ -433,7 +256,7 @@ def test_data_residual_jacobian_rule_equals_plain_autodiff(round_trip):
     rng = np.random.default_rng(5)
     a = jnp.asarray(np.concatenate([[0.0, 1.0, 0.37], rng.uniform(0.0, 1.0, M - 3)]))
     jaw = jnp.asarray([6.5, -1.2, 0.8])
-    rigid = jnp.asarray(y["rigid"]) + jnp.asarray([0.3, -0.2, 0.1, 0.5, -0.4, 0.2])
+    rigid = jnp.asarray(y.rigid) + jnp.asarray([0.3, -0.2, 0.1, 0.5, -0.4, 0.2])
     n = M + 3
     u = jnp.asarray(rng.normal(size=n))
     corrected = dataclasses.replace(
@@ -445,8 +268,8 @@ def test_data_residual_jacobian_rule_equals_plain_autodiff(round_trip):
     for p in (pts, corrected):
         for use_rigid in (True, False):
             rig = rigid if use_rigid else None
-            f = lambda a_, j_, r_: _data_vector(a_, j_, r_, p, use_rigid)  # noqa: E731
-            g = lambda a_, j_, r_: _data_vector_plain(a_, j_, r_, p, use_rigid)  # noqa: E731
+            f = lambda a_, j_, r_: data_vector(a_, j_, r_, p, use_rigid)  # noqa: E731
+            g = lambda a_, j_, r_: data_vector_plain(a_, j_, r_, p, use_rigid)  # noqa: E731
             arg = (0, 1, 2) if use_rigid else (0, 1)
             Jf = jax.jacfwd(f, argnums=arg)(a, jaw, rig)
             Jg = jax.jacfwd(g, argnums=arg)(a, jaw, rig)
@@ -463,14 +286,15 @@ def test_data_residual_jacobian_rule_equals_plain_autodiff(round_trip):
     # a tangent on the point set (here its targets) falls back to plain autodiff
     dt = jnp.asarray(rng.normal(size=pts.target.shape))
     shift = lambda s: dataclasses.replace(pts, target=pts.target + s * dt)  # noqa: E731
-    _, tf = jax.jvp(lambda s: _data_vector(a, jaw, rigid, shift(s), True), (0.0,), (1.0,))
-    _, tg = jax.jvp(lambda s: _data_vector_plain(a, jaw, rigid, shift(s), True), (0.0,), (1.0,))
+    _, tf = jax.jvp(lambda s: data_vector(a, jaw, rigid, shift(s), True), (0.0,), (1.0,))
+    _, tg = jax.jvp(lambda s: data_vector_plain(a, jaw, rigid, shift(s), True), (0.0,), (1.0,))
     assert np.abs(np.asarray(tg)).max() > 1e-3
     np.testing.assert_allclose(np.asarray(tf), np.asarray(tg), rtol=1e-9, atol=1e-12)
 
 
 def test_round_trip_conditioning_report(round_trip):
-    from jaxface.fit.solve import jacobian_conditioning, make_priors
+    from jaxface.fit.conditioning import jacobian_conditioning
+    from jaxface.fit.residuals import make_priors
 
     subject, res, _, opt = round_trip[:4]
     pri = make_priors(subject.muscle_names, opt)
@@ -493,7 +317,7 @@ def test_symmetry_prior_is_quadratic_for_small_differences_and_saturates(round_t
 
     import equinox as eqx
 
-    from jaxface.fit.solve import _cost_of_activations, make_priors, residuals
+    from jaxface.fit.residuals import cost_of_activations, make_priors, residuals
 
     subject, res, _, opt = round_trip[:4]
     names = list(subject.muscle_names)
@@ -508,8 +332,8 @@ def test_symmetry_prior_is_quadratic_for_small_differences_and_saturates(round_t
 
     def sym_cost(aL, aR, tau):
         pri = make_priors(names, dataclasses.replace(opt, symmetry_scale=tau))
-        y = dict(res.fit.y, z=z_from_activations(jnp.asarray(acts(aL, aR))))
-        return float(jnp.sum(residuals(y, (pts, pri))["symmetry"] ** 2))
+        y = res.fit.y.with_z(z_from_activations(jnp.asarray(acts(aL, aR))))
+        return float(jnp.sum(residuals(y, (pts, pri)).symmetry ** 2))
 
     np.testing.assert_allclose(sym_cost(0.5, 0.2, 1e3), lam * 0.3**2, rtol=1e-6)
     small = sym_cost(0.21, 0.2, 0.1)
@@ -522,12 +346,12 @@ def test_symmetry_prior_is_quadratic_for_small_differences_and_saturates(round_t
     # the KKT gradient against central differences of the inner cost in the activations
     pri = make_priors(names, opt)
     a = jnp.asarray(acts(0.32, 0.27))
-    g = np.asarray(jax.grad(_cost_of_activations)(a, res.fit.y, pts, pri))
+    g = np.asarray(jax.grad(cost_of_activations)(a, res.fit.y, pts, pri))
     h = 1e-6
     for i in (iL, iR):
         fd = (
-            _cost_of_activations(a.at[i].add(h), res.fit.y, pts, pri)
-            - _cost_of_activations(a.at[i].add(-h), res.fit.y, pts, pri)
+            cost_of_activations(a.at[i].add(h), res.fit.y, pts, pri)
+            - cost_of_activations(a.at[i].add(-h), res.fit.y, pts, pri)
         ) / (2 * h)
         np.testing.assert_allclose(g[i], float(fd), rtol=1e-5, atol=1e-10)
     with pytest.raises(ValueError, match="symmetry_scale"):
@@ -650,87 +474,39 @@ def test_batched_inner_solve_map_equals_vmap(round_trip):
     step count)."""
     import jax
 
-    from jaxface.fit.solve import _stack, batch_mode, make_priors, solve_inner
+    from jaxface.fit.inner import batch_mode, solve_inner, stack_trees
+    from jaxface.fit.residuals import make_priors
 
     subject, res, _, opt = round_trip[:4]
     assert batch_mode() == ("map" if jax.default_backend() == "cpu" else "vmap")
     pri = make_priors(subject.muscle_names, opt)
     y = res.fit.y
-    y_far = dict(y)
-    y_far["jaw"] = y["jaw"] + 3.0  # a start that needs other steps
-    Y0 = _stack([dict(y), y_far])
-    P = _stack([res.fit.points, res.fit.points])
+    y_far = dataclasses.replace(y, jaw=y.jaw + 3.0)  # a start that needs other steps
+    Y0 = stack_trees([y, y_far])
+    P = stack_trees([res.fit.points, res.fit.points])
     out_map = solve_inner(Y0, P, pri, opt, mode="map")
     out_vmap = solve_inner(Y0, P, pri, opt, mode="vmap")
-    steps_map, steps_vmap = out_map[2], out_vmap[2]
+    steps_map, steps_vmap = out_map.steps, out_vmap.steps
     np.testing.assert_array_equal(steps_map, steps_vmap)  # each member's own step count
     # the premise: the members stop at different steps (which one needs more depends on how
     # close the fit's own end point is to the inner solve's minimum), so map mode's per-member
     # stopping is what is compared with vmap's
     assert steps_map[1] != steps_map[0]
-    for a, b in zip(jax.tree_util.tree_leaves(out_map[0]), jax.tree_util.tree_leaves(out_vmap[0])):
+    for a, b in zip(jax.tree_util.tree_leaves(out_map.y), jax.tree_util.tree_leaves(out_vmap.y)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-4)
-    np.testing.assert_allclose(out_map[3], out_vmap[3], rtol=1e-4, atol=1e-8)  # costs
+    np.testing.assert_allclose(out_map.cost, out_vmap.cost, rtol=1e-4, atol=1e-8)
+    assert out_map.result == out_vmap.result and len(out_map.result) == 2
     # padded to 8 members (the accelerator's fixed batch shape): the padding is cut from the
     # results and the two real members' solves are those of the unpadded batch
     out_pad = solve_inner(Y0, P, pri, opt, mode="vmap", pad_to=5)
-    assert out_pad[1].shape == (2,) and out_pad[5].shape == out_vmap[5].shape
-    np.testing.assert_array_equal(out_pad[2], steps_vmap)
-    for a, b in zip(jax.tree_util.tree_leaves(out_pad[0]), jax.tree_util.tree_leaves(out_vmap[0])):
+    assert len(out_pad.result) == 2 and out_pad.activations.shape == out_vmap.activations.shape
+    np.testing.assert_array_equal(out_pad.steps, steps_vmap)
+    for a, b in zip(jax.tree_util.tree_leaves(out_pad.y), jax.tree_util.tree_leaves(out_vmap.y)):
         assert a.shape == b.shape
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-9)
-    np.testing.assert_allclose(out_pad[3], out_vmap[3], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(out_pad.cost, out_vmap.cost, rtol=1e-9, atol=1e-12)
     with pytest.raises(Exception, match="map"):
         solve_inner(Y0, P, pri, opt, mode="pmap")
-
-
-def test_host_stack_and_index_equal_jax_stack_and_slicing():
-    """The fit's batches are stacked and sliced on the host (no eager XLA op per leaf): the
-    same values, dtypes and shapes as ``jnp.stack`` / ``x[i]``, as JAX arrays."""
-    import jax
-    import jax.numpy as jnp
-
-    from jaxface.fit.solve import _index, _stack
-
-    rng = np.random.default_rng(3)
-    trees = [
-        {
-            "z": jnp.asarray(rng.normal(size=5)),
-            "ids": jnp.asarray(rng.integers(0, 9, (4, 3))),
-            "free": jnp.asarray(rng.random(5) > 0.5),
-        }
-        for _ in range(3)
-    ]
-    got = _stack(trees)
-    want = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *trees)
-    for g, w in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want)):
-        assert isinstance(g, jax.Array) and g.dtype == w.dtype and g.shape == w.shape
-        np.testing.assert_array_equal(np.asarray(g), np.asarray(w))
-    for i in range(3):
-        for g, w in zip(
-            jax.tree_util.tree_leaves(_index(got, i)), jax.tree_util.tree_leaves(trees[i])
-        ):
-            assert isinstance(g, jax.Array) and g.dtype == w.dtype
-            np.testing.assert_array_equal(np.asarray(g), np.asarray(w))
-
-
-def test_padded_batch_size_is_the_next_power_of_two():
-    from jaxface.errors import FitError
-    from jaxface.fit.solve import padded_batch_size
-
-    assert [padded_batch_size(n) for n in (1, 2, 3, 4, 5, 8, 11, 16, 17)] == [
-        1,
-        2,
-        4,
-        4,
-        8,
-        8,
-        16,
-        16,
-        32,
-    ]
-    with pytest.raises(FitError, match="at least one"):
-        padded_batch_size(0)
 
 
 def test_inner_solve_by_normal_equations_equals_qr(round_trip):
@@ -741,16 +517,17 @@ def test_inner_solve_by_normal_equations_equals_qr(round_trip):
     import lineax as lx
     import optimistix as optx
 
-    from jaxface.fit.solve import _linear_solver, make_priors, residuals
+    from jaxface.fit.inner import linear_solver
+    from jaxface.fit.residuals import make_priors, residuals
 
     subject, res, _, opt = round_trip[:4]
-    assert isinstance(_linear_solver(np.float64), lx.Normal)
-    assert isinstance(_linear_solver(np.float32), lx.QR)
+    assert isinstance(linear_solver(np.float64), lx.Normal)
+    assert isinstance(linear_solver(np.float32), lx.QR)
     pri = make_priors(subject.muscle_names, opt)
-    y0 = jax.tree_util.tree_map(jax.numpy.asarray, dict(res.fit.y))
-    y0["jaw"] = y0["jaw"] + 3.0
+    y0 = jax.tree_util.tree_map(jax.numpy.asarray, res.fit.y)
+    y0 = dataclasses.replace(y0, jaw=y0.jaw + 3.0)
     sols = []
-    for ls in (lx.QR(), _linear_solver(np.float64)):
+    for ls in (lx.QR(), linear_solver(np.float64)):
         solver = optx.LevenbergMarquardt(rtol=opt.rtol, atol=opt.atol, linear_solver=ls)
         sols.append(
             optx.least_squares(
@@ -777,10 +554,11 @@ def test_map_mode_traces_the_inner_solve_once_for_every_batch_size(round_trip, m
 
     import jax
 
-    from jaxface.fit import solve as S
+    from jaxface.fit import inner as S
+    from jaxface.fit.residuals import make_priors
 
     subject, res, _, opt = round_trip[:4]
-    pri = S.make_priors(subject.muscle_names, opt)
+    pri = make_priors(subject.muscle_names, opt)
     traces = []
     real = S._solve_one
 
@@ -793,16 +571,16 @@ def test_map_mode_traces_the_inner_solve_once_for_every_batch_size(round_trip, m
     y = res.fit.y
     outs = {}
     for n in (1, 3, 2):
-        ys = [dict(y, jaw=y["jaw"] + 0.5 * b) for b in range(n)]
-        outs[n] = S.solve_inner(S._stack(ys), S._stack([res.fit.points] * n), pri, opt2, mode="map")
+        ys = [dataclasses.replace(y, jaw=y.jaw + 0.5 * b) for b in range(n)]
+        outs[n] = S.solve_inner(
+            S.stack_trees(ys), S.stack_trees([res.fit.points] * n), pri, opt2, mode="map"
+        )
     assert len(traces) == 1
     # a member's solution does not depend on the batch it is in
     for n in (2, 3):
-        for a, b in zip(
-            jax.tree_util.tree_leaves(outs[n][0]), jax.tree_util.tree_leaves(outs[1][0])
-        ):
+        for a, b in zip(jax.tree_util.tree_leaves(outs[n].y), jax.tree_util.tree_leaves(outs[1].y)):
             np.testing.assert_array_equal(np.asarray(a)[0], np.asarray(b)[0])
-    np.testing.assert_array_equal(outs[3][2][:2], outs[2][2])
+    np.testing.assert_array_equal(outs[3].steps[:2], outs[2].steps)
 
 
 def test_gradient_correction_gives_the_exact_rigs_gradient(round_trip):
@@ -811,29 +589,29 @@ def test_gradient_correction_gives_the_exact_rigs_gradient(round_trip):
     reduced model's, which differs there."""
     import dataclasses
 
-    from jaxface.fit.solve import (
-        _data_residuals,
-        _points_from_vertices,
+    from jaxface.fit.residuals import (
+        data_residuals,
         effective_z,
         gradient_correction,
+        points_from_vertices,
     )
 
     subject, res = round_trip[:2]
-    pts, y = res.fit.points, dict(res.fit.y)
-    fn, ids = subject.forward._fn, jnp.asarray(subject.fit_ids)
+    pts, y = res.fit.points, res.fit.y
+    fn, ids = subject.forward.fn, jnp.asarray(subject.fit_ids)
     names = list(subject.muscle_names)
     # a correction point off the fit's minimum, as in the early outer iterations (at the
     # minimum itself the reduced and exact gradients are both near 0): three activations up
-    z = np.array(y["z"], np.float64)
+    z = np.array(y.z, np.float64)
     for n in ("zygomaticus_major_L", "frontalis_medial_R", "corrugator_R"):
         z[names.index(n)] = min(z[names.index(n)] + 0.15, 0.95)
-    y["z"] = jnp.asarray(z)
+    y = y.with_z(jnp.asarray(z))
     a0 = activations_from_z(effective_z(y, pts))
-    p0 = np.asarray(jnp.concatenate([a0, jnp.asarray(y["jaw"])]), np.float64)
+    p0 = np.asarray(jnp.concatenate([a0, jnp.asarray(y.jaw)]), np.float64)
     M = a0.shape[0]
 
     def exact_points(p):
-        return _points_from_vertices(fn(jnp.asarray(p[:M]), jnp.asarray(p[M:]))[ids], pts)
+        return points_from_vertices(fn(jnp.asarray(p[:M]), jnp.asarray(p[M:]))[ids], pts)
 
     # make the defect exact at p0, as the fit does at each outer iteration
     base = dataclasses.replace(pts, grad_u=None, grad_p=None, grad_r=None)
@@ -843,14 +621,14 @@ def test_gradient_correction_gives_the_exact_rigs_gradient(round_trip):
     fixed = dataclasses.replace(base, grad_u=u, grad_p=pk, grad_r=r)
 
     def half_cost(p, P):
-        r_pt, r_lm = _data_residuals(p[:M], p[M:], y["rigid"], P, True)
+        r_pt, r_lm = data_residuals(p[:M], p[M:], y.rigid, P, True)
         return 0.5 * (jnp.sum(r_pt**2) + jnp.sum(r_lm**2))
 
     g_fixed = np.asarray(jax.grad(half_cost)(jnp.asarray(p0), fixed))
     g_reduced = np.asarray(jax.grad(half_cost)(jnp.asarray(p0), base))
 
     def exact_half_cost(p):
-        x = np.asarray(apply_rigid(y["rigid"], pts.centre, exact_points(p)))
+        x = np.asarray(apply_rigid(y.rigid, pts.centre, exact_points(p)))
         K = pts.normal.shape[0]
         r_pt = np.sqrt(pts.w_point) * np.sum(pts.normal * (x[:K] - pts.target[:K]), axis=-1)
         r_lm = np.sqrt(pts.w_landmark)[:, None] * (x[K:] - pts.target[K:])
@@ -878,11 +656,11 @@ def test_gradient_correction_gives_the_exact_rigs_gradient(round_trip):
     # sits on the switching points of its piecewise-smooth steps, and the eager and compiled
     # reverse passes take different one-sided derivatives there (measured: 3.2 against a
     # scale of 76); those components never reach the fit, whose da/dz is 0 at z = 0.
-    from jaxface.fit.solve import _gradient_correction_vjp_jit
+    from jaxface.fit.residuals import gradient_correction_from_vjp_jit
 
-    x, vjp = subject.forward.with_vjp(a0, y["jaw"])
-    np.testing.assert_allclose(np.asarray(x), subject.forward(a0, y["jaw"]), rtol=0, atol=1e-9)
-    u2, pk2, r2 = _gradient_correction_vjp_jit(x, vjp, ids, y, base, True)
+    x, vjp = subject.forward.with_vjp(a0, y.jaw)
+    np.testing.assert_allclose(np.asarray(x), subject.forward(a0, y.jaw), rtol=0, atol=1e-9)
+    u2, pk2, r2 = gradient_correction_from_vjp_jit(x, vjp, ids, y, base, True)
     smooth = np.concatenate([np.asarray(a0) > 1e-9, np.ones(np.asarray(u).size - M, bool)])
     assert smooth[:M].sum() >= 3
     scale = float(np.abs(np.asarray(u)).max())
@@ -896,26 +674,6 @@ def test_gradient_correction_gives_the_exact_rigs_gradient(round_trip):
             rtol=1e-9,
             atol=1e-12 * float(np.abs(np.asarray(want)).max()),
         )
-
-
-def test_restart_trigger_restarts_saturated_fits_that_did_not_converge():
-    """``restart_when``: "unconverged" restarts a run with controls at 1 only when its fit did
-    not converge, "saturated" every run with controls at 1; no run without them restarts, and
-    an unknown value is refused when the options are made."""
-    from jaxface.fit.solve import _should_restart
-
-    table = {  # (saturated, converged): (unconverged, saturated)
-        (True, False): (True, True),
-        (True, True): (False, True),
-        (False, False): (False, False),
-        (False, True): (False, False),
-    }
-    for (sat, conv), (want_u, want_s) in table.items():
-        assert _should_restart("unconverged", sat, conv) is want_u, (sat, conv)
-        assert _should_restart("saturated", sat, conv) is want_s, (sat, conv)
-    assert FitOptions().restart_when == "unconverged" and FitOptions().restart_iterations > 0
-    with pytest.raises(ValueError, match="restart_when"):
-        FitOptions(restart_when="always")
 
 
 def test_bound_flip_restart_leaves_a_minimum_with_a_saturated_control():
@@ -938,13 +696,14 @@ def test_bound_flip_restart_leaves_a_minimum_with_a_saturated_control():
     (1.22e-2 mm^2, restarted to 2.07e-3); with the inner steps' QR solve, levator anguli oris L
     alone (5.5e-3 mm^2, restarted to 1.2e-5)."""
     from jaxface.anatomy.jaw import JawPose
-    from jaxface.anatomy.rig import build_rig, synthesize
+    from jaxface.anatomy.rig import Rig, build_rig, synthesize
     from jaxface.fit.pipeline import SubjectOptions, fit_expressions, subject_from_rig
     from jaxface.head import generic_head
     from jaxface.io.scanner import SkinLandmarks, scan_skin
 
     head = generic_head()
     rig = build_rig(head)
+    assert isinstance(rig, Rig)  # the PBD backend
     bound = SkinLandmarks.of_rig(rig)
     truth = {
         "buccinator_R": 1.0,
@@ -992,7 +751,7 @@ def test_bound_flip_restart_leaves_a_minimum_with_a_saturated_control():
 def test_forward_many_equals_single_syntheses_for_any_batch_size(round_trip):
     """``ForwardModel.many`` gives each row's own synthesis, for batches smaller than, equal
     to and larger than its chunk, and synthesises each row once (no padding)."""
-    from jaxface.fit.solve import ForwardModel
+    from jaxface.fit.forward import ForwardModel
 
     subject = round_trip[0]
     fwd = ForwardModel(subject.forward.rig, chunk=2)
@@ -1056,20 +815,3 @@ def test_scan_points_are_drawn_from_the_moving_region_as_the_options_say(round_t
         "n_moving"
     ]
     assert far(few) > few["n_moving"]  # the rest holds moving points beyond 0.3 mm too
-
-
-def test_motion_sampling_options_are_checked():
-    assert FitOptions().motion_fraction == 0.5 and FitOptions().motion_threshold_mm == 0.3
-    with pytest.raises(ValueError, match="motion_fraction"):
-        FitOptions(motion_fraction=1.5)
-    with pytest.raises(ValueError, match="motion_threshold_mm"):
-        FitOptions(motion_threshold_mm=-1.0)
-    with pytest.raises(ValueError, match="motion_threshold_mm"):
-        FitOptions(motion_threshold_mm=float("nan"))
-
-
-def test_sparse_readout_weight_is_checked():
-    assert FitOptions().au_sparse_weight == 0.02
-    for bad in (-0.1, float("nan"), float("inf")):
-        with pytest.raises(ValueError, match="au_sparse_weight"):
-            FitOptions(au_sparse_weight=bad)

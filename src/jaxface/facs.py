@@ -40,6 +40,7 @@ __all__ = [
     "emotion_controls",
     "au_intensities",
     "au_decomposition",
+    "au_dict",
     "sort_aus",
 ]
 
@@ -297,10 +298,10 @@ def au_intensities(
         ``{AU: intensity}`` sorted by AU number, plus the L/R variants.
     """
     aus, x, _ = au_decomposition(activations, muscle_names)
-    return _au_dict(aus, x, jaw, cheek_puff)
+    return au_dict(aus, x, jaw, cheek_puff)
 
 
-def _au_dict(aus, values, jaw=None, cheek_puff: float = 0.0) -> dict[str, float]:
+def au_dict(aus, values, jaw=None, cheek_puff: float = 0.0) -> dict[str, float]:
     """``{AU: intensity}`` from unilateral-variant intensities ``values`` (``aus`` as
     :func:`au_decomposition` returns them; a bilateral AU is the mean of its sides) and the
     jaw AUs of ``jaw`` (:func:`au_intensities`' rules); sorted by AU number. Shared by

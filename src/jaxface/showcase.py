@@ -141,7 +141,7 @@ def _scan_and_fit(rig, head, out: Path, say, timings) -> list[dict]:
     from .anatomy.jaw import JawPose
     from .anatomy.rig import synthesize
     from .fit.pipeline import SubjectOptions, fit_expressions, subject_from_rig
-    from .fit.solve import FitOptions
+    from .fit.options import FitOptions
     from .io.bosphorus import write_bnt
     from .io.scanner import SkinLandmarks, scan_skin
     from .landmarks import write_lm3

@@ -101,7 +101,7 @@ def run_fit(
     """
     from ..errors import FitError, LandmarkError
     from ..fit.pipeline import SubjectOptions, _stem, fit_expressions, prepare_subject
-    from ..fit.solve import FitOptions
+    from ..fit.options import FitOptions
 
     if backend not in ("pbd", "ltw"):
         raise FitError(f"--backend {backend!r}: use 'pbd' or 'ltw'.")
@@ -293,7 +293,7 @@ def register(app: typer.Typer) -> None:
         jax.config.update("jax_enable_x64", True)
 
         from ..fit.pipeline import SubjectOptions
-        from ..fit.solve import FitOptions
+        from ..fit.options import FitOptions
 
         opts = FitOptions(
             n_points=points,

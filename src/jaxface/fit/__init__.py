@@ -1,6 +1,6 @@
 """Scan registration, rigid alignment, fit metrics and baselines (issue 7).
 
-Submodules (NumPy/SciPy at build time; nothing here is on the jit path):
+Submodules:
 
 * :mod:`jaxface.fit.align`: rigid / similarity alignment of an expression scan to the neutral
   on the expression-stable landmarks, then robust point-to-plane ICP on stable regions.
@@ -11,12 +11,18 @@ Submodules (NumPy/SciPy at build time; nothing here is on the jit path):
   (Erdoğdu 2010 AU transfer from a source subject).
 * :mod:`jaxface.fit.evaluation`: the issue-7 ground-truth protocol for the shared
   ``bosphorus_style`` data.
-* :mod:`jaxface.fit.solve` (JAX): the inverse solve: activations, jaw pose and a rigid
-  correction by optimistix Levenberg-Marquardt on point-to-plane + landmark residuals.
+* the inverse solve (JAX), in parts: :mod:`jaxface.fit.options` (:class:`FitOptions` and its
+  groups), :mod:`jaxface.fit.params` (the unknowns), :mod:`jaxface.fit.forward` (the exact rig),
+  :mod:`jaxface.fit.reduced` (its reduced response model), :mod:`jaxface.fit.residuals`
+  (residuals and the exact-gradient correction), :mod:`jaxface.fit.inner` (the
+  Levenberg-Marquardt solves), :mod:`jaxface.fit.active_set` (the activation bounds),
+  :mod:`jaxface.fit.correspond` (scan-to-skin correspondences), :mod:`jaxface.fit.conditioning`
+  (a diagnostic) and :mod:`jaxface.fit.solve` (the outer loop, :func:`fit_points`); the design
+  is in ``docs/design/fit.md``.
 * :mod:`jaxface.fit.au_motion` (JAX): AU readouts from a fit's skin motion: the motion (mm)
-  each action unit accounts for (the AUs an expression *shows*) and the sparse intensities
-  (the fewest AUs that reproduce the motion), alongside the intensities of
-  :func:`jaxface.facs.au_intensities`.
+  each action unit accounts for (:func:`au_skin_motion`: the AUs an expression *shows*) and
+  the sparse intensities (:func:`jaxface.fit.au_motion.au_sparse`: the fewest AUs that
+  reproduce the motion), alongside the intensities of :func:`jaxface.facs.au_intensities`.
 * :mod:`jaxface.fit.pipeline`: neutral scan -> subject rig (:func:`prepare_subject`);
   expression scans -> activations, AUs, fitted skin, metrics, baselines
   (:func:`fit_expressions`); what ``jaxface fit`` runs.
@@ -48,12 +54,12 @@ _LAZY = {
     "evaluation_region": "jaxface.fit.evaluation",
     "evaluate_against_truth": "jaxface.fit.evaluation",
     "ict_template": "jaxface.fit.evaluation",
-    "FitOptions": "jaxface.fit.solve",
+    "FitOptions": "jaxface.fit.options",
     "SubjectOptions": "jaxface.fit.pipeline",
     "prepare_subject": "jaxface.fit.pipeline",
     "fit_expressions": "jaxface.fit.pipeline",
     "ExpressionFit": "jaxface.fit.pipeline",
-    "au_motion": "jaxface.fit.au_motion",
+    "au_skin_motion": "jaxface.fit.au_motion",
 }
 _SUBMODULES = {
     "align",
@@ -61,6 +67,15 @@ _SUBMODULES = {
     "metrics",
     "baselines",
     "evaluation",
+    "options",
+    "params",
+    "forward",
+    "reduced",
+    "residuals",
+    "inner",
+    "active_set",
+    "correspond",
+    "conditioning",
     "solve",
     "pipeline",
     "au_motion",

@@ -16,7 +16,7 @@ visible change, and this readout follows them:
   rest AU27; positive protrusion is AU29; yaw is AU30L (toward the subject's left, +) or
   AU30R;
 * each share is applied *alone* to the subject's reduced model
-  (:class:`jaxface.fit.solve.ResponseModel`, the model the fit solves with) and the RMS skin
+  (:class:`jaxface.fit.reduced.ResponseModel`, the model the fit solves with) and the RMS skin
   displacement over its points (the face region, mm) is that AU's motion. A bilateral AU
   (``AU12``) is both sides' shares together, its sides (``AU12L``, ``AU12R``) each alone.
 
@@ -41,13 +41,14 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from scipy.optimize import minimize
 
-from ..facs import AU_JAW, _au_dict, au_decomposition, sort_aus
+from ..anatomy.jaw import JawPose
+from ..facs import AU_JAW, au_decomposition, au_dict, sort_aus
+from .options import AU_SPARSE_WEIGHT
+from .reduced import ResponseModel, hermite_basis
 
-__all__ = ["au_motion", "au_sparse", "motion_gram", "AU_SPARSE_WEIGHT"]
-
-#: default L1 weight of :func:`au_sparse` (mm^2 of mean squared motion per unit intensity)
-AU_SPARSE_WEIGHT = 0.02
+__all__ = ["au_skin_motion", "au_sparse", "motion_gram", "AU_SPARSE_WEIGHT"]
 
 
 @eqx.filter_jit
@@ -55,7 +56,7 @@ def _rms_motion(model, rows, muscles, values, J, n_rows: int):
     """RMS displacement (mm) of ``n_rows`` shares of the activations, then of ``Q`` jaw poses.
 
     The reduced model is additive in the muscles, so a share's displacement is the sum of its
-    muscles' own terms (:meth:`~jaxface.fit.solve.ResponseModel.muscle_terms`): the triples
+    muscles' own terms (:meth:`~jaxface.fit.reduced.ResponseModel.muscle_terms`): the triples
     ``(rows, muscles, values)`` ``(T,)`` list the activations of every share (the table's
     non-zero pattern, so ``T`` is fixed per rig and this compiles once per subject).
     ``J`` ``(Q, 3)``: jaw poses, muscles at rest. Returns ``(n_rows + Q,)``."""
@@ -67,11 +68,13 @@ def _rms_motion(model, rows, muscles, values, J, n_rows: int):
     return jnp.sqrt(jnp.mean(jnp.sum(D * D, axis=-1), axis=-1))
 
 
-def au_motion(response, activations, jaw, muscle_names: Sequence[str]) -> dict[str, float]:
+def au_skin_motion(
+    response: ResponseModel, activations, jaw, muscle_names: Sequence[str]
+) -> dict[str, float]:
     """RMS skin motion (mm) each action unit accounts for in a fitted expression.
 
     Args:
-        response: the subject's :class:`~jaxface.fit.solve.ResponseModel` (mm).
+        response: the subject's :class:`~jaxface.fit.reduced.ResponseModel` (mm).
         activations: ``(M,)`` fitted activations in [0, 1], ordered as ``muscle_names``.
         jaw: ``(3,)`` effective jaw pose ``[pitch_deg, yaw_deg, protrusion_mm]`` (after the
             rig's limits, e.g. ``PointFit.jaw_effective``).
@@ -138,12 +141,12 @@ def motion_gram(response) -> np.ndarray:
     The model is additive in the muscles and each muscle's displacement is a cubic Hermite
     spline in its activation: ``D(a) = sum_m psi(a_m) . F_m`` with ``psi`` ``(2N,)`` the spline
     weights of the ``N`` knot values and slopes and ``F_m`` ``(2N, P, 3)`` those fields
-    (:class:`~jaxface.fit.solve.ResponseModel`). So the mean squared distance of two motions
+    (:class:`~jaxface.fit.reduced.ResponseModel`). So the mean squared distance of two motions
     over the ``P`` points is the quadratic form ``d^T G d`` of their weight differences, with
     ``G = F F^T / P``: the readout's cost without touching the points again.
 
     Args:
-        response: the subject's :class:`~jaxface.fit.solve.ResponseModel` (mm).
+        response: the subject's :class:`~jaxface.fit.reduced.ResponseModel` (mm).
 
     Returns:
         ``(M 2N, M 2N)`` float64, mm^2.
@@ -158,9 +161,7 @@ def motion_gram(response) -> np.ndarray:
 def _spline_weights(x, knots):
     """``(M 2N,)``: the Hermite weights of every muscle's ``N`` knot values, then its ``N``
     slopes, at activations ``x`` ``(M,)`` (the layout of :func:`motion_gram`)."""
-    from .solve import _hermite_basis
-
-    s, w, _ = _hermite_basis(x, knots)
+    s, w, _ = hermite_basis(x, knots)
     M, N = x.shape[0], knots.shape[0]
     m = jnp.arange(M)
     W = jnp.zeros((M, 2 * N), x.dtype)
@@ -218,7 +219,7 @@ def au_sparse(
     27, 29, 30) come from the jaw pose as in :func:`jaxface.facs.au_intensities`.
 
     Args:
-        response: the subject's :class:`~jaxface.fit.solve.ResponseModel` (mm).
+        response: the subject's :class:`~jaxface.fit.reduced.ResponseModel` (mm).
         activations: ``(M,)`` fitted activations in [0, 1], ordered as ``muscle_names``.
         jaw: ``(3,)`` effective jaw pose ``[pitch_deg, yaw_deg, protrusion_mm]``.
         muscle_names: the rig's control names.
@@ -237,10 +238,6 @@ def au_sparse(
         RigError: ``activations`` and ``muscle_names`` differ in length.
         ValueError: a negative or non-finite ``weight``.
     """
-    from scipy.optimize import minimize
-
-    from ..anatomy.jaw import JawPose
-
     w = float(weight)
     if not (np.isfinite(w) and w >= 0.0):
         raise ValueError(
@@ -273,5 +270,5 @@ def au_sparse(
         x = np.zeros(0)
     _, mis, _ = _sparse_cost(G, knots, jnp.asarray(x, dt), R, phi_a, wj)
     je = np.asarray(jaw, np.float64).ravel()
-    out = _au_dict(aus, x, JawPose(float(je[0]), float(je[1]), float(je[2])))
+    out = au_dict(aus, x, JawPose(float(je[0]), float(je[1]), float(je[2])))
     return out, float(np.sqrt(max(float(mis), 0.0)))

@@ -8,8 +8,8 @@ is +x. NumPy orchestration around the JAX solver of :mod:`jaxface.fit.solve`.
    user mesh with landmarks) to the neutral scan (:func:`jaxface.fit.register.register_template`);
    carry the template's teeth along with a TPS of the registration; build the rig on the
    registered neutral (:func:`jaxface.anatomy.build_rig`: skull, muscles, skin binding);
-   compile the rig (:class:`~jaxface.fit.solve.ForwardModel`) and sample its reduced model
-   (:func:`~jaxface.fit.solve.build_response_model`) over the face region.
+   compile the rig (:class:`~jaxface.fit.forward.ForwardModel`) and sample its reduced model
+   (:func:`~jaxface.fit.reduced.build_response_model`) over the face region.
 2. :func:`fit_expressions` (a batch of scans of that subject): rigid alignment of each scan
    to the neutral (:func:`jaxface.fit.align.align_scans`), scan points and normals moved into
    the neutral frame and subsampled, landmark targets (the rig's landmarks displaced by the
@@ -36,14 +36,10 @@ from typing import Any
 import numpy as np
 
 from ..errors import FitError, LandmarkError
-from .solve import (
-    FitOptions,
-    ForwardModel,
-    PointFit,
-    ResponseModel,
-    build_response_model,
-    fit_points,
-)
+from .forward import ForwardModel
+from .options import FitOptions
+from .reduced import ResponseModel, build_response_model
+from .solve import PointFit, fit_points
 
 __all__ = [
     "SubjectOptions",
@@ -104,8 +100,8 @@ class Subject:
         neutral: the neutral :class:`jaxface.io.Scan` (with landmarks).
         registration: :class:`jaxface.fit.register.Registration` of the template.
         rig: the rig built on the registered neutral.
-        forward: its :class:`~jaxface.fit.solve.ForwardModel`.
-        response: its :class:`~jaxface.fit.solve.ResponseModel` over ``fit_ids``.
+        forward: its :class:`~jaxface.fit.forward.ForwardModel`.
+        response: its :class:`~jaxface.fit.reduced.ResponseModel` over ``fit_ids``.
         fit_ids: ``(P,)`` vertex ids of the face triangles and landmark triangles.
         face_triangles: ``(F,)`` bool face region of the rig skin.
         landmark_names: labels of the rig's landmarks; landmark_tri, landmark_bary: their
@@ -414,7 +410,7 @@ def scan_fit_inputs(
     region (and not beyond its border by more than 3 mm), and subsampled (seeded) to
     ``n_points`` (padded with invalid rows): up to ``motion_fraction`` of them from the points
     farther than ``motion_threshold_mm`` from the registered neutral (the expression's moving
-    region; defaults and meaning: :class:`~jaxface.fit.solve.FitOptions`), the rest evenly
+    region; defaults and meaning: :class:`~jaxface.fit.options.FitOptions`), the rest evenly
     from all. Scan normals are flipped when most of them
     point into the face (a mesh scan wound the other way round). Landmark targets: the rig's
     rest landmarks displaced by ``T(q_scan) - q_neutral`` (labels missing in either scan are
@@ -498,7 +494,7 @@ class ExpressionFit:
         fitted_landmarks: the rig's landmarks on it (scan frame, mm).
         activations: muscle -> activation; au_intensities: AU -> intensity.
         au_motion_mm: AU -> RMS skin motion (mm) that AU's share of the fit produces alone
-            (:func:`jaxface.fit.au_motion.au_motion`): which AUs the expression *shows*.
+            (:func:`jaxface.fit.au_motion.au_skin_motion`): which AUs the expression *shows*.
         au_sparse: AU -> intensity of the sparsest AU combination that reproduces the fit's
             skin motion (:func:`jaxface.fit.au_motion.au_sparse`); au_sparse_misfit_mm: the RMS
             distance (mm) between that combination's motion and the fit's.
@@ -537,7 +533,7 @@ class ExpressionFit:
         return {"pitch_deg": float(j[0]), "yaw_deg": float(j[1]), "protrusion_mm": float(j[2])}
 
     def rigid_dict(self) -> dict:
-        from .solve import rigid_numpy
+        from .params import rigid_numpy
 
         R, t = rigid_numpy(self.fit.rigid, self.fit.centre)
         Tn = self.alignment.transform  # scan -> neutral
@@ -759,11 +755,11 @@ def fit_expressions(
     Arguments:
         subject: from :func:`prepare_subject`.
         scans: :class:`jaxface.io.Scan` objects (with landmarks) or paths.
-        options: :class:`~jaxface.fit.solve.FitOptions`.
+        options: :class:`~jaxface.fit.options.FitOptions`.
         scan_landmarks: optional landmarks per scan (override the scans' own).
         progress: called with short texts.
         batch_size: scans fitted together (default: all;
-            :func:`~jaxface.fit.solve.solve_inner`). The alignment, the exact syntheses
+            :func:`~jaxface.fit.inner.solve_inner`). The alignment, the exact syntheses
             and inner solves of every outer iteration, and the evaluation (metrics,
             baselines) of a batch's scans run concurrently on the outer thread pool
             (:mod:`jaxface._parallel`), so a batch costs less per scan than single fits
@@ -783,7 +779,7 @@ def fit_expressions(
     from ..io import load_scan
     from ..mesh import TriMesh
     from .align import align_scans
-    from .au_motion import au_motion, au_sparse, motion_gram
+    from .au_motion import au_skin_motion, au_sparse, motion_gram
     from .baselines import baseline_b0, baseline_b1
     from .metrics import fit_metrics
 
@@ -901,7 +897,7 @@ def fit_expressions(
         )
         say(f"evaluating {len(batch)} fit(s) and the baselines")
         motions = [
-            au_motion(subject.response, f.activations, f.jaw_effective, subject.muscle_names)
+            au_skin_motion(subject.response, f.activations, f.jaw_effective, subject.muscle_names)
             for f in fits
         ]  # JAX, on this thread (one compilation per subject)
         sparse = [

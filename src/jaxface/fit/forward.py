@@ -1,0 +1,115 @@
+"""The exact forward model: the rig's quasi-static synthesis, ``(a (M,), jaw (3,)) -> (V, 3)`` mm.
+
+The fit evaluates it once per scan and outer iteration (the defect of the reduced model, and
+with the gradient correction one reverse-mode pass through it), and, with
+``FitOptions.exact_steps``, differentiates it in forward mode.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..anatomy.jaw import JawPose
+from ..anatomy.rig import synthesize
+from ..errors import FitError
+from ..ltw.rig import LTWRig, synthesize_ltw
+
+__all__ = ["ForwardModel", "synthesis_function", "exact_skin_and_vjp"]
+
+
+def synthesis_function(rig) -> Callable:
+    """``(a (M,), jaw (3,)) -> (V, 3)`` mm for a PBD :class:`~jaxface.anatomy.rig.Rig` or an
+    LTW rig (:class:`~jaxface.ltw.rig.LTWRig`)."""
+    if isinstance(rig, LTWRig):
+        return lambda a, j: synthesize_ltw(rig, a, JawPose.from_array(j))
+    return lambda a, j: synthesize(rig, a, JawPose.from_array(j))
+
+
+def exact_skin_and_vjp(exact_fn, a, jaw):
+    """The exact rig's skin ``(V, 3)`` mm at ``(a (M,), jaw (3,))`` and its VJP (a pytree:
+    it can leave a ``jit`` and be called in another): the one forward pass that both the
+    correspondences and :func:`jaxface.fit.residuals.gradient_correction_from_vjp` of an outer
+    iteration use."""
+    return jax.vjp(exact_fn, a, jaw)
+
+
+_exact_vjp_jit = eqx.filter_jit(exact_skin_and_vjp)
+
+
+class ForwardModel:
+    """The rig's quasi-static synthesis, jit-compiled once with the rig closed over.
+
+    Arguments:
+        rig: a :class:`jaxface.anatomy.rig.Rig` (or an LTW rig), mm.
+        chunk: how many syntheses :meth:`many` dispatches before it waits for their results.
+
+    Calling ``model(a (M,), jaw (3,))`` returns the ``(V, 3)`` skin in mm (NumPy); ``fn`` is
+    the same synthesis un-jitted (for tracing it inside other functions). :meth:`many`
+    evaluates a batch one synthesis at a time through the same compiled function, so any
+    batch size costs one compilation and no padding (on a CPU a ``vmap`` of the PBD solve is
+    slower per item than this loop).
+    """
+
+    def __init__(self, rig, *, chunk: int = 8):
+        self.rig = rig
+        self.n_controls = int(rig.n_controls)
+        self.muscle_names = tuple(rig.muscle_names)
+        self.chunk = int(chunk)
+        fn = synthesis_function(rig)
+        self.fn = fn
+        self._one = jax.jit(fn)
+        self.calls = 0
+        self._count_lock = threading.Lock()  # with_vjp runs on several threads in a batch
+
+    def _count(self, n: int = 1) -> None:
+        with self._count_lock:
+            self.calls += n
+
+    @property
+    def triangles(self) -> np.ndarray:
+        return np.asarray(self.rig.triangles)
+
+    @property
+    def rest(self) -> np.ndarray:
+        return np.asarray(self.rig.rest)
+
+    def __call__(self, a, jaw) -> np.ndarray:
+        self._count()
+        dt = jnp.result_type(float)  # float64 when x64 is enabled, else float32
+        return np.asarray(self._one(jnp.asarray(a, dt), jnp.asarray(jaw, dt)))
+
+    def with_vjp(self, a, jaw):
+        """The skin ``(V, 3)`` mm (a JAX array) at ``a (M,)``, ``jaw (3,)`` and its VJP
+        (:func:`exact_skin_and_vjp`, compiled once): one synthesis, counted in ``calls``."""
+        self._count()
+        dt = jnp.result_type(float)
+        return _exact_vjp_jit(self.fn, jnp.asarray(a, dt), jnp.asarray(jaw, dt))
+
+    def many(self, A, J) -> np.ndarray:
+        """``(B, V, 3)`` mm for activations ``(B, M)`` and jaw poses ``(B, 3)``."""
+        A = np.asarray(A, np.float64).reshape(-1, self.n_controls)
+        J = np.asarray(J, np.float64).reshape(-1, 3)
+        if len(A) != len(J):
+            raise FitError(
+                f"many() needs one jaw pose per activation row; got {len(J)} jaw poses for "
+                f"{len(A)} rows."
+            )
+        dt = jnp.result_type(float)  # float64 when x64 is enabled, else float32
+        out = np.zeros((len(A), len(self.rest), 3))
+        step = max(self.chunk, 1)
+        for s in range(0, len(A), step):
+            # dispatch a chunk asynchronously, then collect it
+            pending = [
+                self._one(jnp.asarray(a, dt), jnp.asarray(j, dt))
+                for a, j in zip(A[s : s + step], J[s : s + step])
+            ]
+            for n, x in enumerate(pending):
+                out[s + n] = np.asarray(x)
+            self._count(len(pending))
+        return out
