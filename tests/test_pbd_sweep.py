@@ -68,15 +68,22 @@ def test_set_works_on_traced_values_inside_filter_jit():
     @eqx.filter_jit
     def solve(system, target, x):
         s = system.set("anchors", target=target).set("volume", rest=system["volume"].rest * 1.01)
-        return pbd.relax(s, x, iterations=4, scheme="jacobi")
+        return pbd.relax(s, x, iterations=3, scheme="jacobi")
 
     got = np.asarray(solve(S, jnp.asarray(t), jnp.asarray(x0)))
     eager = S.set("anchors", target=t).set("volume", rest=np.asarray(S["volume"].rest) * 1.01)
-    want = ref.jacobi(eager, x0, iterations=4)
+    want = ref.jacobi(eager, x0, iterations=3)
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
-    # and differentiable through the traced set
-    g = jax.grad(lambda tt: jnp.sum(solve(S, tt, jnp.asarray(x0)) ** 2))(jnp.asarray(t))
-    assert np.isfinite(np.asarray(g)).all() and np.abs(np.asarray(g)).max() > 0
+    # and differentiable through the traced set (a small system: one group)
+    A = pbd.build_system({"anchors": S["anchors"]}, S.inv_mass)
+
+    @jax.grad
+    def grad(tt):
+        s = A.set("anchors", target=tt)
+        return jnp.sum(pbd.relax(s, jnp.asarray(x0), iterations=2, scheme="jacobi") ** 2)
+
+    g = np.asarray(grad(jnp.asarray(t)))
+    assert np.isfinite(g).all() and np.abs(g).max() > 0
 
 
 def test_multi_body_volumes_each_reach_their_target():
