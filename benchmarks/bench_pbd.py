@@ -87,7 +87,7 @@ def bench_rig(rig, dtype, repeat):
 
     a, jaw, _ = facs.emotion_controls("happiness", rig.muscle_names)
     a = jnp.asarray(a, dtype)
-    pose = JawPose(jnp.asarray(jaw.pitch_deg, dtype))
+    pose = JawPose(jnp.asarray(jaw.pitch_deg, dtype))  # pyright: ignore[reportArgumentType]
     synth = eqx.filter_jit(lambda r, a, p: synthesize_state(r, a, p).skin)
     c, mn, md = _time(synth, rig, a, pose, repeat=repeat)
     out = {"synthesis": {"compile_s": c, "ms_min": mn, "ms_median": md}}
@@ -118,6 +118,12 @@ def bench_rig(rig, dtype, repeat):
     return out
 
 
+def _relax_fn(n: int, scheme):
+    from jaxface import pbd
+
+    return jax.jit(lambda s, x: pbd.relax(s, x, iterations=n, scheme=scheme))
+
+
 def bench_system(rig, dtype, repeat):
     """The engine's System of the rig's skin: ms per sweep in both schemes (new code only)."""
     from jaxface import pbd
@@ -138,11 +144,12 @@ def bench_system(rig, dtype, repeat):
     S = pbd.build_system(groups, len(v), omega={"stretch": 1.5, "cross": 1.5})
     n_proj = sum(int(S[k].size) for k in S.names)
     x0 = jnp.asarray(v, dtype)
-    out = {"constraints": n_proj}
-    for scheme in ("jacobi", "gs"):
+    out: dict = {"constraints": n_proj}
+    schemes: tuple[pbd.Scheme, ...] = ("jacobi", "gs")
+    for scheme in schemes:
         ms = {}
         for n in (8, 40):
-            f = jax.jit(lambda s, x, n=n, sc=scheme: pbd.relax(s, x, iterations=n, scheme=sc))
+            f = _relax_fn(n, scheme)
             ms[n] = _time(f, S, x0, repeat=repeat)[1]
         per = (ms[40] - ms[8]) / 32
         out[scheme] = {"ms_per_sweep": per, "projections_per_s": n_proj / (per / 1e3)}
@@ -154,7 +161,7 @@ def bench_system(rig, dtype, repeat):
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
     ap.add_argument("--rig", default="ict", choices=["ict", "head"])
     ap.add_argument("--dtype", default="float32", choices=["float32", "float64"])
     ap.add_argument("--repeat", type=int, default=7)

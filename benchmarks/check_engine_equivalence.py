@@ -21,6 +21,8 @@ import argparse
 import os
 import sys
 import time
+from collections.abc import Iterator
+from typing import TYPE_CHECKING
 
 import jax
 
@@ -29,14 +31,22 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
+if TYPE_CHECKING:
+    from jaxface.anatomy.rig import Rig
 
-def _rigs(which):
-    from jaxface.anatomy.rig import build_rig
+
+def _rigs(which) -> Iterator[tuple[str, Rig]]:
+    from jaxface.anatomy.rig import Rig, build_rig
     from jaxface.head import generic_head
 
     shared = os.environ.get("JAXFACE_SHARED", "../shared")
+
+    def pbd_rig(r) -> Rig:
+        assert isinstance(r, Rig)
+        return r
+
     if "head" in which:
-        yield "head", build_rig(generic_head())
+        yield "head", pbd_rig(build_rig(generic_head()))
     if "ict" in which:
         from jaxface.anatomy.ict import load_ict_face
 
@@ -46,7 +56,9 @@ def _rigs(which):
         )
         yield (
             "ict",
-            build_rig(f.skin, f.landmarks, upper_teeth=f.upper_teeth, lower_teeth=f.lower_teeth),
+            pbd_rig(
+                build_rig(f.skin, f.landmarks, upper_teeth=f.upper_teeth, lower_teeth=f.lower_teeth)
+            ),
         )
     if "bs901" in which:
         from jaxface.fit.pipeline import _warp_teeth
@@ -57,7 +69,10 @@ def _rigs(which):
         template = generic_head()
         reg = register_template(scan, template=template)
         upper, lower = _warp_teeth(template, reg)
-        yield "bs901", build_rig(reg.mesh, reg.landmarks, upper_teeth=upper, lower_teeth=lower)
+        yield (
+            "bs901",
+            pbd_rig(build_rig(reg.mesh, reg.landmarks, upper_teeth=upper, lower_teeth=lower)),
+        )
 
 
 def _poses(rig):
@@ -113,7 +128,7 @@ def compare(a_path, b_path, tol):
 
 
 def main(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     p.add_argument("--save")
     p.add_argument("--rigs", default="head,ict,bs901")
     p.add_argument("--compare", nargs=2)
@@ -122,7 +137,7 @@ def main(argv=None):
     if args.save:
         save(args.save, args.rigs.split(","))
     if args.compare:
-        return 0 if compare(*args.compare, args.tol) else 1
+        return 0 if compare(args.compare[0], args.compare[1], args.tol) else 1
     return 0
 
 

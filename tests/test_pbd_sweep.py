@@ -16,8 +16,15 @@ import numpy as np
 
 from jaxface import pbd
 from jaxface import reference as ref
+from jaxface.constraints import AnchorConstraints, VolumeConstraint
 from jaxface.mesh import TriMesh
 from test_pbd import dodecahedron, grid, volume
+
+
+def _volume(system, name) -> VolumeConstraint:
+    c = system[name]
+    assert isinstance(c, VolumeConstraint)
+    return c
 
 
 def _cloth():
@@ -63,15 +70,21 @@ def test_set_works_on_traced_values_inside_filter_jit():
     """``system.set`` with the system and the new targets as arguments of a jitted function
     (a TracerArrayConversionError before the one engine); the result equals the eager one."""
     S, x0 = _cloth()
-    t = np.asarray(S["anchors"].target) + 0.5
+    anchors = S["anchors"]
+    assert isinstance(anchors, AnchorConstraints)
+    t = np.asarray(anchors.target) + 0.5
 
     @eqx.filter_jit
     def solve(system, target, x):
-        s = system.set("anchors", target=target).set("volume", rest=system["volume"].rest * 1.01)
+        s = system.set("anchors", target=target).set(
+            "volume", rest=_volume(system, "volume").rest * 1.01
+        )
         return pbd.relax(s, x, iterations=3, scheme="jacobi")
 
     got = np.asarray(solve(S, jnp.asarray(t), jnp.asarray(x0)))
-    eager = S.set("anchors", target=t).set("volume", rest=np.asarray(S["volume"].rest) * 1.01)
+    eager = S.set("anchors", target=t).set(
+        "volume", rest=np.asarray(_volume(S, "volume").rest) * 1.01
+    )
     want = ref.jacobi(eager, x0, iterations=3)
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
     # and differentiable through the traced set (a small system: one group)
@@ -99,7 +112,9 @@ def test_multi_body_volumes_each_reach_their_target():
     x = np.asarray(pbd.relax(S, jnp.asarray(v2), iterations=20, scheme="jacobi"))
     np.testing.assert_allclose(volume(x[: len(v)], t), 1.2 * V0, rtol=1e-6)
     np.testing.assert_allclose(volume(x[len(v) :] - [20.0, 0, 0], t), 0.9 * V0, rtol=1e-6)
-    np.testing.assert_allclose(np.asarray(S["vol"].volume(x)), [1.2 * V0, 0.9 * V0], rtol=1e-6)
+    np.testing.assert_allclose(
+        np.asarray(_volume(S, "vol").volume(x)), [1.2 * V0, 0.9 * V0], rtol=1e-6
+    )
 
 
 def test_teeth_hull_projection_matches_a_per_point_reference():

@@ -88,6 +88,7 @@ __all__ = [
     "DEFAULT_SCHEME",
     "System",
     "Group",
+    "Scheme",
     "Particles",
     "build_system",
     "make_group",

@@ -55,6 +55,8 @@ class Group(eqx.Module):
             ``None`` (Jacobi only, and for volumes).
         omega: static Jacobi over-relaxation (1 = plain averaging).
         name: static label.
+        scatter_hints: static ``(sorted, unique)`` of the corners' particle ids (hints for the
+            Jacobi scatter, e.g. the rig's anchors on every skin vertex; no effect on values).
     """
 
     c: Constraints
@@ -62,6 +64,7 @@ class Group(eqx.Module):
     blocks: ColorBlocks | None = None
     omega: float = eqx.field(static=True, default=1.0)
     name: str = eqx.field(static=True, default="")
+    scatter_hints: tuple[bool, bool] = eqx.field(static=True, default=(False, False))
 
     def set(self, **fields) -> Group:
         """Copy with fields of the constraints replaced (:meth:`Constraints.set`; traced
@@ -104,7 +107,16 @@ def make_group(
     blocks = None
     if color and not isinstance(c, VolumeConstraint):
         blocks = color_blocks(idx, n)
-    return Group(c=c, inv_count=to_jax(inv), blocks=blocks, omega=float(omega), name=name)
+    flat = idx.T.ravel()
+    hints = (bool(np.all(np.diff(flat) >= 0)), bool(cnt.max(initial=0.0) <= 1.0))
+    return Group(
+        c=c,
+        inv_count=to_jax(inv),
+        blocks=blocks,
+        omega=float(omega),
+        name=name,
+        scatter_hints=hints,
+    )
 
 
 def _cast(tree, dtype):
@@ -133,7 +145,13 @@ def _jacobi_group(g: Group, x, w, lam, dt):
     dps, dlam = c.correction(P, W, _alpha(c, dt), lam)
     # one scatter over all corners (one segment_sum per corner was slower on the CPU)
     contrib = jnp.concatenate([dp.T for dp in dps])
-    acc = jax.ops.segment_sum(contrib, c.idx.T.reshape(-1), num_segments=x.shape[0])
+    acc = jax.ops.segment_sum(
+        contrib,
+        c.idx.T.reshape(-1),
+        num_segments=x.shape[0],
+        indices_are_sorted=g.scatter_hints[0],
+        unique_indices=g.scatter_hints[1],
+    )
     x = x + g.omega * acc * g.inv_count[:, None]
     return x, (None if dlam is None else lam + dlam)
 
@@ -164,28 +182,31 @@ def _gs_group(g: Group, x, w, lam, dt):
     return jax.lax.scan(body, x, (fields, ids, lam))
 
 
-def sweep(groups: Sequence[Group], x, inv_mass, *, scheme: Scheme = "jacobi", lams=None, dt=1.0):
-    """One sweep: every group projected in order.
+def sweep(groups: Sequence[Group], x, inv_mass, *, scheme: Scheme = "jacobi") -> jax.Array:
+    """One sweep of plain-PBD groups: every group projected in order (XPBD: :func:`solve`).
 
     Args:
         groups: the :class:`Group` s (their floats are cast to ``x``'s dtype).
         x: ``(N, 3)`` mm positions (for ``"gs"`` extended by the dummy particles).
         inv_mass: ``(N,)`` inverse masses, 1/g (0 = kinematic: never moved).
         scheme: static ``"jacobi"`` or ``"gs"``.
-        lams: per group XPBD multipliers (``None`` entries for PBD groups), or ``None`` when
-            no group has compliance.
-        dt: s, XPBD time step (``alpha / dt^2``).
 
     Returns:
-        ``(N, 3)`` mm; with ``lams`` given, ``(x, lams)``.
+        ``(N, 3)`` mm.
     """
+    return _sweep(groups, x, inv_mass, scheme, [None] * len(groups), 1.0)[0]
+
+
+def _sweep(groups, x, inv_mass, scheme, lams, dt):
+    """One sweep with the XPBD multipliers ``lams`` (one entry per group, ``None`` for PBD);
+    returns ``(x, lams)``."""
     groups = _cast(tuple(groups), x.dtype)
     inv_mass = inv_mass.astype(x.dtype)
     one = _gs_group if scheme == "gs" else _jacobi_group
-    out = list(lams) if lams is not None else [None] * len(groups)
+    out = list(lams)
     for i, g in enumerate(groups):
         x, out[i] = one(g, x, inv_mass, out[i], dt)
-    return x if lams is None else (x, tuple(out))
+    return x, tuple(out)
 
 
 def _zero_lambdas(groups, scheme, dtype):
@@ -247,22 +268,13 @@ def solve(
         x = jnp.concatenate([x, jnp.zeros((D, 3), dtype)])
         w = jnp.concatenate([w, jnp.zeros((D,), dtype)])
     lams = _zero_lambdas(groups, scheme, dtype)
-    if all(lam is None for lam in lams):
-        x = iterate(
-            lambda x: sweep(groups, x, w, scheme=scheme, dt=dt),
-            x,
-            iterations,
-            rho,
-            checkpoint_every=checkpoint_every,
-        )
-    else:
-        x, _ = iterate(
-            lambda c: sweep(groups, c[0], w, scheme=scheme, lams=c[1], dt=dt),
-            (x, lams),
-            iterations,
-            rho,
-            checkpoint_every=checkpoint_every,
-        )
+    x, _ = iterate(
+        lambda c: _sweep(groups, c[0], w, scheme, c[1], dt),
+        (x, lams),
+        iterations,
+        rho,
+        checkpoint_every=checkpoint_every,
+    )
     return x[:n]
 
 

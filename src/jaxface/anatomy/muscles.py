@@ -314,6 +314,7 @@ def _eval_support(G, ids, w):
 def muscle_volumes(system: MuscleSystem, x) -> jax.Array:
     """``(n_muscles,)`` enclosed volume of each muscle mesh at ``x`` ``(Nm, 3)``, mm^3."""
     c = system.volume.c
+    assert isinstance(c, pbd.VolumeConstraint)
     return eqx.tree_at(lambda q: q.origin, c, c.origin.astype(x.dtype)).volume(x)
 
 
@@ -716,6 +717,7 @@ def _active_groups(system: MuscleSystem, activations, thick, dt):
     c_f = acts[system.fib_ctrl] * system.fib_cmax.astype(dt)
     c_s = jnp.concatenate([jnp.repeat(c_f, system.h_max)[system.fib_valid], jnp.zeros((1,), dt)])
     g0 = groups[0]
+    assert isinstance(g0.c, pbd.DistanceConstraints)
     r = (
         g0.c.rest.astype(dt)
         * (1.0 - c_s[system.dist_lon_sample])

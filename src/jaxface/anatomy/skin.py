@@ -997,6 +997,7 @@ def solve_skin(sk: SkinSystem, targets, R, t, *, iterations: int | None = None, 
     if sk.volume is not None:
         # the volume the underlying structures imply: the capped volume of the targets
         vol = sk.volume.c
+        assert isinstance(vol, pbd.VolumeConstraint)
         vol = eqx.tree_at(lambda q: q.origin, vol, vol.origin.astype(dt))
         groups += (sk.volume.set(rest=vol.volume(jnp.where(dyn, targets, rest))),)
     if sk.upper_hull is not None:

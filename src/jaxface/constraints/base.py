@@ -23,7 +23,7 @@ array (``x``, ``y``, ``z`` rows), which vectorises best on CPU. Units: mm, rad, 
 from __future__ import annotations
 
 import dataclasses
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax
@@ -251,6 +251,7 @@ class Constraints(eqx.Module):
                 dlam = jnp.where(C < 0, dlam, 0.0)
             new = None
         else:
+            lam = jnp.zeros_like(C) if lam is None else lam
             den = denom + alpha_t
             ok = den > 0
             dlam = jnp.where(ok, kk * (-C - alpha_t * lam) / jnp.where(ok, den, 1.0), 0.0)
@@ -278,7 +279,7 @@ class Constraints(eqx.Module):
         return jnp.maximum(-C, 0.0) if self.unilateral else jnp.abs(C)
 
 
-def _base_fields(idx, stiffness, compliance, name):
+def _base_fields(idx, stiffness, compliance, name) -> dict[str, Any]:
     m = idx.shape[0]
     k = _as_float(stiffness, (m,), f"{name} stiffness")
     _check_stiffness(k, name)
