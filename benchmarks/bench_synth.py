@@ -20,7 +20,7 @@ region, 9,409 vertices, with its teeth):
   plain sweeps still move the result, mm);
 * with ``--sweeps 32/8,128/8,512/24/0.97,...``: the time-accuracy curve of the quasi-static
   solve, each ``muscle/skin[/rho]`` sweep count (``rho``: the skin's Chebyshev acceleration,
-  :func:`jaxface.anatomy.solver.iterate`; or a preset name: ``converged``, ``reference``) timed
+  :func:`jaxface.pbd.iterate`; or a preset name: ``converged``, ``reference``) timed
   and compared (max, 99th percentile and mean vertex distance, mm) with a 3,000 / 400-sweep
   plain solve from rest, and its equilibrium gap;
 * with ``--expressions``: the same distances to a 3,000 / 400-sweep solve and the equilibrium

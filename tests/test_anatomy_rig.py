@@ -541,37 +541,6 @@ def test_expression_sheet_draws_the_heads_eyes(rig, tmp_path):
         )
 
 
-def test_teeth_hull_projection_matches_a_per_point_reference():
-    """The skin's teeth collision (one-hot nearest plane) against a plain per-point loop:
-    every particle inside the hull (plus clearance) goes out along the normal of its nearest
-    face, by exactly its depth; particles outside stay put."""
-    from jaxface import pbd
-    from jaxface.anatomy.skin import _hull_project
-    from jaxface.anatomy.solver import fused_group
-
-    rng = np.random.default_rng(3)
-    hull_pts = rng.normal(size=(60, 3)) * np.array([20.0, 8.0, 6.0])
-    N, d = pbd.hull_planes(hull_pts)
-    x = rng.uniform(-25, 25, size=(400, 3)) * np.array([1.0, 0.5, 0.4])
-    ids = np.arange(0, 400, 2)  # half of the particles collide-able
-    clearance = 0.5
-    g = fused_group(pbd.hull_constraints(ids, N, d, clearance=clearance), len(x))
-    got = np.asarray(
-        _hull_project(
-            g, jnp.asarray(x, jnp.float32), jnp.asarray(N, jnp.float32), jnp.asarray(d, jnp.float32)
-        )
-    )
-    want = x.copy()
-    for i in ids:
-        sd = N @ x[i] - d
-        h = int(np.argmax(sd))
-        depth = clearance - sd[h]
-        if depth > 0:
-            want[i] = x[i] + depth * N[h]
-    assert np.sum(np.any(want != x, axis=1)) > 10  # the test does push particles out
-    np.testing.assert_allclose(got, want, atol=2e-4)
-
-
 def _grid_mesh(n=9, jitter=0.0, seed=0):
     from jaxface.mesh import TriMesh
 

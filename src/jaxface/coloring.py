@@ -21,16 +21,22 @@ smallest compatible colour, without adding colours, until every colour holds ``c
 constraints or fewer (on the face: 2,767-2,770 per stretch colour). Equal colours let the
 solver store a group as a padded ``(K, S)`` block and ``lax.scan`` over the colours: one
 compiled body per group instead of one per colour (compile time independent of the mesh) with
-almost no padding.
+almost no padding. :func:`color_blocks` builds that layout (:class:`ColorBlocks`) for the
+Gauss-Seidel scheme of :mod:`jaxface.pbd`; the Jacobi scheme needs no colouring.
 """
 
 from __future__ import annotations
 
+import equinox as eqx
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 from .errors import MeshError
 
 __all__ = [
+    "ColorBlocks",
+    "color_blocks",
     "greedy_coloring",
     "balance_coloring",
     "balanced_coloring",
@@ -219,3 +225,52 @@ def padded_layout(colors) -> tuple[np.ndarray, int, int]:
     rank = np.empty(col.size, np.int64)
     rank[order] = np.arange(col.size) - np.repeat(starts, counts)
     return col * S + rank, K, S
+
+
+class ColorBlocks(eqx.Module):
+    """The ``(K, S)`` colour-block layout of one constraint group (Gauss-Seidel scheme).
+
+    Attributes:
+        perm: ``(K * S,)`` int32, slot ``s`` holds the user's constraint ``perm[s]``
+            (-1: padding).
+        idx: ``(K, arity, S)`` int32 particle ids per slot; padding slots point at dummy
+            particles ``N, N + 1, ...`` (unique inside a colour, inverse mass 0: inert).
+        layout: static ``(K, S)``.
+        n_dummy: static number of dummy particles the padding needs.
+    """
+
+    perm: jax.Array
+    idx: jax.Array
+    layout: tuple[int, int] = eqx.field(static=True)
+    n_dummy: int = eqx.field(static=True)
+
+    def gather(self, a):
+        """Per-constraint array ``(M, ...)`` (user order) as ``(K, S, ...)`` colour blocks
+        (padding slots repeat constraint 0; differentiable)."""
+        K, S = self.layout
+        return a[jnp.maximum(self.perm, 0)].reshape((K, S) + a.shape[1:])
+
+    def order(self) -> np.ndarray:
+        """The user's constraint ids in the order a Gauss-Seidel sweep projects them."""
+        perm = np.asarray(self.perm)
+        return perm[perm >= 0]
+
+
+def color_blocks(indices, n_particles: int) -> ColorBlocks:
+    """Balanced colouring (:func:`balanced_coloring`) of ``(M, arity)`` constraints on ``N``
+    particles, laid out in ``(K, S)`` blocks (NumPy, build time)."""
+    idx = np.asarray(indices, np.int64)
+    slot, K, S = padded_layout(balanced_coloring(idx, n_particles))
+    perm = np.full(K * S, -1, np.int64)
+    perm[slot] = np.arange(slot.size)
+    pad = perm < 0
+    rank = (np.cumsum(pad.reshape(K, S), axis=1) - 1).reshape(-1)
+    ids = idx[np.maximum(perm, 0)] if idx.size else np.zeros((K * S, idx.shape[1]), np.int64)
+    ids[pad] = (n_particles + rank[pad])[:, None]
+    n_dummy = int(pad.reshape(K, S).sum(1).max()) if pad.size else 0
+    return ColorBlocks(
+        perm=jnp.asarray(perm, jnp.int32),
+        idx=jnp.asarray(ids.reshape(K, S, -1).transpose(0, 2, 1), jnp.int32),
+        layout=(K, S),
+        n_dummy=n_dummy,
+    )

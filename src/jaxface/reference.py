@@ -44,7 +44,7 @@ from .constraints import (
 )
 from .errors import MeshError
 
-__all__ = ["solve", "step", "simulate", "constraint_values"]
+__all__ = ["solve", "jacobi", "step", "simulate", "constraint_values"]
 
 _TINY = np.finfo(np.float64).eps ** 2
 
@@ -68,32 +68,37 @@ def _groups(constraints):
 
 
 def _records(g, order):
-    """List of (kind, data) per constraint of group ``g`` in processing order."""
-    u = g.user_order()
-    if order == "user" or isinstance(g, VolumeConstraint):
+    """List of (kind, data) per constraint of group ``g`` (constraints, or a
+    :class:`jaxface.sweep.Group` of a System) in processing order."""
+    blocks = getattr(g, "blocks", None)
+    u = g.c if hasattr(g, "c") else g
+    if order == "user" or isinstance(u, VolumeConstraint) or blocks is None:
         seq = range(u.size)
     else:
-        perm = np.asarray(g.perm)
-        seq = perm[perm >= 0].tolist()
+        seq = blocks.order().tolist()
     idx = np.asarray(u.idx).tolist()
     k = np.asarray(u.stiffness, np.float64).tolist()
     a = None if u.compliance is None else np.asarray(u.compliance, np.float64).tolist()
     recs = []
-    if isinstance(g, VolumeConstraint):
-        tri = np.asarray(u.idx).tolist()
-        recs.append(
-            (
-                "volume",
+    if isinstance(u, VolumeConstraint):
+        owner = np.asarray(u.owner)
+        rest = np.asarray(u.rest, np.float64)
+        for b in range(u.n_bodies):
+            tri = np.asarray(u.idx)[owner == b].tolist()
+            recs.append(
                 (
-                    tri,
-                    float(np.asarray(u.rest)[0]),
-                    np.asarray(u.origin, np.float64).tolist(),
-                    k[0],
-                    None if a is None else a[0],
-                ),
+                    "volume",
+                    (
+                        tri,
+                        float(rest[b]),
+                        np.asarray(u.origin, np.float64).tolist(),
+                        k[b],
+                        None if a is None else a[b],
+                    ),
+                )
             )
-        )
         return recs
+    g = u
     if isinstance(g, DistanceConstraints):
         rest = np.asarray(u.rest, np.float64).tolist()
         for j in seq:
@@ -378,6 +383,59 @@ def solve(
     xl = xa.tolist()
     for _ in range(passes):
         _sweeps(recs, xl, w, iterations, 1.0 / (dt * dt))
+    return np.asarray(xl)
+
+
+def jacobi(system, x, *, iterations: int) -> np.ndarray:
+    """Sequential oracle of the engine's fused Jacobi scheme (``scheme="jacobi"``), plain PBD.
+
+    Per sweep, group after group (in order): every constraint of the group is projected alone
+    from the same positions (with the scalar formulas of this module), the corrections are
+    summed per particle, divided by the number of the group's constraint corners on the
+    particle and scaled by the group's ``omega``; volume groups are projected directly.
+
+    Args:
+        system: a :class:`jaxface.pbd.System` (no XPBD compliance).
+        x: ``(N, 3)`` mm start positions.
+        iterations: sweeps.
+
+    Returns:
+        ``(N, 3)`` float64 mm.
+
+    Raises:
+        MeshError: a group with XPBD compliance, or not a System.
+    """
+    names, groups, sysm = _groups(system)
+    if sysm is None:
+        raise MeshError("jacobi needs a jaxface.pbd.System.", problem="bad_option")
+    xl = np.array(x, dtype=np.float64).tolist()
+    w = _inv_mass(system, None, len(xl))
+    recs = [_records(g, "user") for g in groups]
+    for name, g in zip(names, groups):
+        if g.c.compliance is not None:
+            raise MeshError(f"jacobi: group {name!r} has XPBD compliance.", problem="bad_option")
+    for _ in range(iterations):
+        for g, r in zip(groups, recs):
+            if isinstance(g.c, VolumeConstraint):
+                for kind, data in r:
+                    _project(kind, data, xl, w, None, 0, 1.0)
+                continue
+            acc: dict[int, list[float]] = {}
+            cnt: dict[int, int] = {}
+            for kind, data in r:
+                ids = [data[0]] if isinstance(data[0], int) else list(data[0])
+                for p in ids:
+                    cnt[p] = cnt.get(p, 0) + 1
+                saved = {p: list(xl[p]) for p in ids}
+                _project(kind, data, xl, w, None, 0, 1.0)
+                for p, old in saved.items():
+                    a = acc.setdefault(p, [0.0, 0.0, 0.0])
+                    for r3 in range(3):
+                        a[r3] += xl[p][r3] - old[r3]
+                    xl[p] = old
+            for p, a in acc.items():
+                s = g.omega / cnt[p]
+                xl[p] = [xl[p][r3] + s * a[r3] for r3 in range(3)]
     return np.asarray(xl)
 
 

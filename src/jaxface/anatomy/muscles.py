@@ -38,9 +38,9 @@ emotions, a jaw opening and every control at 1 (:func:`solve_muscles`; measured 
 2,048 sweeps). ``shell_stiffness = 0`` restores the thesis's muscle.
 
 Solve order per iteration (thesis animation loop, lines 8-11): for each layer, deepest first,
-refresh the samples of its action lines, then one fused Jacobi sweep
-(:mod:`jaxface.anatomy.solver`) over its constraints: positions, the shell, distances,
-bending, and the per-muscle volume (:func:`multi_volume_project`).
+refresh the samples of its action lines, then one fused Jacobi sweep of the engine
+(:func:`jaxface.pbd.sweep`) over its constraints: positions, the shell, distances,
+bending, and the per-muscle volume constraints.
 
 Units: mm. Everything at run time is JAX (jit/vmap/jvp/grad).
 """
@@ -56,8 +56,8 @@ import numpy as np
 
 from .. import pbd
 from .._arrays import to_jax
+from ..errors import RigError
 from .muscle_map import PlacedMuscle, check_sphincter_rings
-from .solver import fused_group, iterate, sweep
 
 __all__ = [
     "STIFFNESS",
@@ -67,7 +67,6 @@ __all__ = [
     "MuscleSystem",
     "build_muscle_system",
     "solve_muscles",
-    "multi_volume_project",
     "muscle_volumes",
     "shell_targets",
 ]
@@ -218,9 +217,11 @@ class MuscleSystem(eqx.Module):
             ``(2, J)`` per side the corner-muscle fibres' insertion-end sample (flat index
             into the ``(F * H)`` samples), their action-line end (fibre index) and weight
             (1 / fibres of the muscle; 0 pads): see :data:`MODIOLUS_GAIN`.
-        groups: fused distance and bending groups (all muscles).
-        vol_*: per-muscle volume data (:func:`multi_volume_project`).
-        pos_inv_count: ``(Nm,)``; inv_mass: ``(Nm,)``.
+        groups: the engine's distance and bending groups (all muscles, :mod:`jaxface.pbd`).
+        positions: anchors of the bottom particles to their action-line samples (targets set
+            every sweep, :func:`sample_targets`); shell: anchors of the top particles to their
+            shell targets (:func:`shell_targets`); volume: one volume constraint per muscle.
+        inv_mass: ``(Nm,)``.
         shell_top: ``(K,)`` every top particle (the bottom one under it is ``below[top]``);
             shell_along: ``(K, 4)`` the bottom's neighbours along its fibre and across;
             shell_mode: ``(K,)`` how the frame is built (:func:`_shell_frames`); shell_tri:
@@ -234,7 +235,7 @@ class MuscleSystem(eqx.Module):
         layers: static layer of each muscle; h_max: static; iterations: static sweeps;
         chebyshev_rho: static (experiments only); shell_stiffness: static, in [0, 1]
         (:data:`SHELL_STIFFNESS`; 0 = the thesis's muscle); checkpoint: static, checkpoint
-        every sweep for reverse mode (:func:`jaxface.anatomy.solver.iterate`). Off by
+        every sweep for reverse mode (:func:`jaxface.pbd.iterate`). Off by
         default: the muscle particles are few (1,688 on bs900's rig), so storing a sweep's
         intermediates costs less than recomputing them (reverse pass of a synthesis, 2-core
         CPU, float64: 0.47 s with the skin's sweeps checkpointed and the muscles' not, 0.52 s
@@ -264,14 +265,10 @@ class MuscleSystem(eqx.Module):
     mod_end: jax.Array
     mod_last: jax.Array
     mod_fw: jax.Array
-    groups: tuple
-    vol_tri: jax.Array
-    vol_owner: jax.Array
-    vol_rest: jax.Array
-    vol_k: jax.Array
-    vol_particle_owner: jax.Array
-    vol_particles: jax.Array
-    pos_inv_count: jax.Array
+    groups: tuple[pbd.Group, ...]
+    positions: pbd.Group
+    shell: pbd.Group
+    volume: pbd.Group
     inv_mass: jax.Array
     particle_layer: jax.Array
     below: jax.Array
@@ -314,49 +311,11 @@ def _eval_support(G, ids, w):
     return jnp.einsum("...k,...kd->...d", w.astype(G.dtype), G[ids])
 
 
-def multi_volume_project(x, tri, owner, rest, k, particle_owner, particles, n_owner: int, inv_mass):
-    """Project one volume constraint per closed muscle mesh (eq. 3.22), all at once.
-
-    Args:
-        x: ``(N, 3)`` mm; tri: ``(T, 3)`` triangles of all muscles (outward);
-        owner: ``(T,)`` muscle of each triangle; rest: ``(K,)`` mm^3; k: ``(K,)`` stiffness;
-        particle_owner: ``(P,)`` muscle of each listed particle; particles: ``(P,)`` ids;
-        n_owner: static ``K``; inv_mass: ``(N,)``.
-
-    Returns:
-        ``(N, 3)`` mm with every muscle's volume corrected (linearised, exact at first order).
-    """
-    dt = x.dtype
-    a, b, c = x[tri[:, 0]], x[tri[:, 1]], x[tri[:, 2]]
-    vol = jax.ops.segment_sum(jnp.sum(jnp.cross(a, b) * c, axis=1), owner, n_owner) / 6.0
-    n = x.shape[0]
-    G = (
-        jax.ops.segment_sum(
-            jnp.concatenate([jnp.cross(b, c), jnp.cross(c, a), jnp.cross(a, b)]),
-            tri.T.reshape(-1),
-            n,
-        )
-        / 6.0
-    )  # one scatter over the three corners
-    w = inv_mass.astype(dt)
-    Gp = G[particles]
-    denom = jax.ops.segment_sum(w[particles] * jnp.sum(Gp * Gp, axis=1), particle_owner, n_owner)
-    C = vol - rest.astype(dt)
-    ok = denom > 0
-    dlam = jnp.where(ok, -k.astype(dt) * C / jnp.where(ok, denom, 1.0), 0.0)
-    return x.at[particles].add((w[particles] * dlam[particle_owner])[:, None] * Gp)
-
-
 def muscle_volumes(system: MuscleSystem, x) -> jax.Array:
     """``(n_muscles,)`` enclosed volume of each muscle mesh at ``x`` ``(Nm, 3)``, mm^3."""
-    tri = system.vol_tri
-    a, b, c = x[tri[:, 0]], x[tri[:, 1]], x[tri[:, 2]]
-    return (
-        jax.ops.segment_sum(
-            jnp.sum(jnp.cross(a, b) * c, axis=1), system.vol_owner, system.n_muscles
-        )
-        / 6.0
-    )
+    c = system.volume.c
+    assert isinstance(c, pbd.VolumeConstraint)
+    return eqx.tree_at(lambda q: q.origin, c, c.origin.astype(x.dtype)).volume(x)
 
 
 @dataclass
@@ -379,7 +338,7 @@ class PendingMuscles:
             k: d.pop(k)
             for k in ("offsets", "names", "layers", "h_max", "iterations", "shell_stiffness")
         }
-        groups = d.pop("groups")
+        engine = {k: d.pop(k) for k in ("groups", "positions", "shell", "volume")}
         arrs = {k: to_jax(v) for k, v in d.items()}
         onm = np.array(self.sp.skull_on_mandible, bool)
         jw = (
@@ -391,7 +350,7 @@ class PendingMuscles:
             skull_rest=to_jax(skull),
             skull_on_mandible=to_jax(onm),
             skull_jaw_weight=to_jax(jw),
-            groups=groups,
+            **engine,
             **arrs,
             **static,
         )
@@ -507,13 +466,12 @@ def build_muscle_system(
         fib_len0[i] = np.linalg.norm(np.diff(sp_pts, axis=0), axis=1).sum()
     bottom = np.concatenate([f[5] for f in fib]) if fib else np.zeros(0, np.int64)
     pos_ids = np.concatenate([bottom] + [s["bottom"].ravel() for s in sph])
-    pos_cnt = np.bincount(pos_ids, minlength=n)
     groups = []
     if dist:
         pairs = np.concatenate([a for a, _ in dist])
         ks = np.concatenate([np.full(len(a), k) for a, k in dist])
         groups.append(
-            fused_group(
+            pbd.make_group(
                 pbd.distance_constraints(pairs, rest, stiffness=ks),
                 n,
                 omega=1.5,
@@ -524,15 +482,32 @@ def build_muscle_system(
         ep = np.concatenate([a for a, _ in bend])
         ks = np.concatenate([np.full(len(a), k) for a, k in bend])
         groups.append(
-            fused_group(
+            pbd.make_group(
                 pbd.bending_constraints(ep, rest, stiffness=ks), n, omega=1.0, name="muscle bending"
             )
         )
+    # the bottom particles follow their action-line samples (targets set every sweep)
+    positions = pbd.make_group(
+        pbd.anchor_constraints(pos_ids, rest[pos_ids], stiffness=POSITION_STIFFNESS),
+        n,
+        name="muscle positions",
+    )
     shell = _shell_data(with_mesh, offsets, rest, fib, dist, dist_key)
     tri = np.concatenate([t for t, _, _ in vol])
     owner = np.concatenate([np.full(len(t), i) for i, (t, _, _) in enumerate(vol)])
-    a, b, c = rest[tri[:, 0]], rest[tri[:, 1]], rest[tri[:, 2]]
-    vrest = np.bincount(owner, np.einsum("ij,ij->i", np.cross(a, b), c), minlength=len(vol)) / 6.0
+    volume = pbd.make_group(
+        pbd.volume_constraint(
+            tri, rest, origin=np.zeros(3), owner=owner, stiffness=[k for _, k, _ in vol]
+        ),
+        n,
+        name="muscle volume",
+    )
+    top = shell["shell_top"]
+    if len(np.unique(top)) != len(top):
+        raise RigError("a muscle particle is the top of two shell frames; check the muscle grid.")
+    shell_group = pbd.make_group(
+        pbd.anchor_constraints(top, rest[top], stiffness=shell_stiffness), n, name="muscle shell"
+    )
     data = dict(
         rest=rest,
         fib_ids=fib_ids,
@@ -552,15 +527,9 @@ def build_muscle_system(
         sph_ab=np.stack([s["ab"] for s in sph]) if sph else np.zeros((0, 2)),
         **mod,
         groups=tuple(groups),
-        vol_tri=tri,
-        vol_owner=owner,
-        vol_rest=vrest,
-        vol_k=np.array([k for _, k, _ in vol], float),
-        vol_particle_owner=np.concatenate(
-            [np.full(len(pp), i) for i, (_, _, pp) in enumerate(vol)]
-        ),
-        vol_particles=np.concatenate([pp for _, _, pp in vol]),
-        pos_inv_count=np.where(pos_cnt > 0, 1.0 / np.maximum(pos_cnt, 1), 0.0),
+        positions=positions,
+        shell=shell_group,
+        volume=volume,
         inv_mass=np.ones(n),
         particle_layer=np.concatenate(
             [np.full(offsets[i + 1] - offsets[i], p.spec.layer) for i, p in enumerate(with_mesh)]
@@ -748,6 +717,7 @@ def _active_groups(system: MuscleSystem, activations, thick, dt):
     c_f = acts[system.fib_ctrl] * system.fib_cmax.astype(dt)
     c_s = jnp.concatenate([jnp.repeat(c_f, system.h_max)[system.fib_valid], jnp.zeros((1,), dt)])
     g0 = groups[0]
+    assert isinstance(g0.c, pbd.DistanceConstraints)
     r = (
         g0.c.rest.astype(dt)
         * (1.0 - c_s[system.dist_lon_sample])
@@ -917,38 +887,18 @@ def _sample_var(points, h, h_max: int, c):
     return (1 - u) * pj + u * pj1
 
 
-def _pos_sweep(system: MuscleSystem, x, ids, tg, inv_mass):
-    dt = x.dtype
-    dp = POSITION_STIFFNESS * (tg - x[ids])
-    dp = jnp.where((inv_mass[ids] > 0)[:, None], dp, 0.0)
-    return x + jax.ops.segment_sum(dp, ids, x.shape[0]) * system.pos_inv_count.astype(dt)[:, None]
-
-
 def muscle_sweep(system: MuscleSystem, x, skull, activations, inv_mass):
     """One sweep of the muscle solve: refresh the samples from the current support, then
-    positions, distances and bending (fused Jacobi) and the per-muscle volumes."""
+    positions, shell, distances and bending (fused Jacobi) and the per-muscle volumes."""
     G = system.support(skull, x)
     ids, tg = sample_targets(system, G, activations)
-    x = _pos_sweep(system, x, ids, tg, inv_mass)
+    x = pbd.sweep((system.positions.set(target=tg),), x, inv_mass)
     groups = system.groups
     if system.shell_stiffness > 0:
         thick = fibre_thickening(system, G, activations)
-        top = system.shell_top
-        dp = system.shell_stiffness * (shell_targets(system, x, ids, tg, thick) - x[top])
-        x = x.at[top].add(jnp.where((inv_mass[top] > 0)[:, None], dp, 0.0))
-        groups = _active_groups(system, activations, thick, x.dtype)
-    x = sweep(groups, x, inv_mass)
-    return multi_volume_project(
-        x,
-        system.vol_tri,
-        system.vol_owner,
-        system.vol_rest,
-        system.vol_k,
-        system.vol_particle_owner,
-        system.vol_particles,
-        system.n_muscles,
-        inv_mass,
-    )
+        shell = system.shell.set(target=shell_targets(system, x, ids, tg, thick))
+        groups = (shell,) + _active_groups(system, activations, thick, x.dtype)
+    return pbd.sweep(groups + (system.volume,), x, inv_mass)
 
 
 def warm_start(system: MuscleSystem, skull, activations):
@@ -1003,11 +953,11 @@ def solve_muscles(
     x = warm_start(system, skull, activations.astype(dt)) if x0 is None else jnp.asarray(x0, dt)
     inv_mass = system.inv_mass.astype(dt)
     a = activations.astype(dt)
-    x = iterate(
+    x = pbd.iterate(
         lambda x: muscle_sweep(system, x, skull, a, inv_mass),
         x,
         iters,
         system.chebyshev_rho,
-        checkpoint=system.checkpoint,
+        checkpoint_every=1 if system.checkpoint else None,
     )
     return x, skull

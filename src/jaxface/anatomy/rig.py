@@ -27,6 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import pbd
 from ..errors import RigError
 from ..mesh import TriMesh
 from .frame import face_frame
@@ -207,7 +208,7 @@ class Rig(eqx.Module):
     ) -> Rig:
         """A copy with other static sweep counts (e.g. many for a converged reference) and,
         optionally, other Chebyshev spectral-radius estimates of the two quasi-static solves
-        (:func:`jaxface.anatomy.solver.iterate`; 0 = plain sweeps). ``muscle_rho`` is for
+        (:func:`jaxface.pbd.iterate`; 0 = plain sweeps). ``muscle_rho`` is for
         experiments only: the muscle iteration is too non-linear for it (see
         :func:`build_rig`, ``skin_chebyshev_rho``). ``checkpoint`` turns the per-sweep
         ``jax.checkpoint`` of both solves on or off (by default the skin's is on, the
@@ -219,11 +220,9 @@ class Rig(eqx.Module):
         for label, v in (("muscles", muscles), ("skin", skin)):
             if v is not None and int(v) < 1:
                 raise RigError(f"{label} sweeps must be at least 1, got {v}.")
-        from .solver import check_rho
-
         for label, v in (("muscle_rho", muscle_rho), ("skin_rho", skin_rho)):
             if v is not None:
-                check_rho(v, f"{label} (a Chebyshev spectral-radius estimate)")
+                pbd.check_rho(v, f"{label} (a Chebyshev spectral-radius estimate)")
         r = self
         mk, sk = {}, {}
         if muscles is not None:
@@ -316,7 +315,7 @@ def build_rig(
             default because it fits jaw-opening scans less well (0.07 mm on the
             Bosphorus-style LFAU_26 and E_SURPRISE scans).
         skin_chebyshev_rho: spectral-radius estimate in ``[0, 1)`` for the Chebyshev
-            acceleration of the skin solve (:func:`jaxface.anatomy.solver.iterate`); 0 = plain
+            acceleration of the skin solve (:func:`jaxface.pbd.iterate`); 0 = plain
             sweeps (the default). With many sweeps (a converged reference, animation at
             30+ sweeps) 0.95-0.97 reaches the plain solve's fixed point in several times
             fewer sweeps; at the default 8 sweeps it changes little. There is no such option
@@ -703,15 +702,12 @@ def simulate(
 
 @eqx.filter_jit
 def _simulate(rig, A, jaw, puff, dt, damping, muscle_sweeps, skin_sweeps):
-    from .skin import solve_skin as _solve_skin
-
     ms = rig.muscles
     dtp = A.dtype
     x_m0 = ms.rest.astype(dtp)
     x_s0 = rig.skin.rest.astype(dtp)
     v0 = jnp.zeros_like(x_s0)
     inv_m = ms.inv_mass.astype(dtp)
-    dyn = (rig.skin.inv_mass > 0)[:, None]
 
     def frame(carry, inp):
         xm, xs, v = carry
@@ -719,14 +715,21 @@ def _simulate(rig, A, jaw, puff, dt, damping, muscle_sweeps, skin_sweeps):
         R, t = rig.jaw.transform(pose)
         R, t = R.astype(dtp), t.astype(dtp)
         skull = moved_skull_points(ms, R, t)
-        xm = jax.lax.fori_loop(
-            0, muscle_sweeps, lambda _, x: muscle_sweep(ms, x, skull, a, inv_m), xm
+        xm = pbd.iterate(
+            lambda x: muscle_sweep(ms, x, skull, a, inv_m),
+            xm,
+            muscle_sweeps,
+            checkpoint_every=None,
         )
         tg = skin_targets(rig.skin, ms.support(skull, xm), a, p)
-        v = v * (1.0 - damping)
-        pred = jnp.where(dyn, xs + dt * v, xs)
-        new = _solve_skin(rig.skin, tg, R, t, iterations=skin_sweeps, x0=pred)
-        v = jnp.where(dyn, (new - xs) / dt, 0.0)
+        new, v = pbd.time_step(
+            lambda q: solve_skin(rig.skin, tg, R, t, iterations=skin_sweeps, x0=q),
+            xs,
+            v,
+            rig.skin.inv_mass,
+            dt=dt,
+            damping=damping,
+        )
         return (xm, new, v), new
 
     poses = JawPose(

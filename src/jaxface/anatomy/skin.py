@@ -55,7 +55,6 @@ from ..errors import RigError
 from ..mesh import TriMesh
 from .frame import FaceFrame
 from .geometry import segment_cast, smooth_normals
-from .solver import fused_group
 
 __all__ = [
     "SKIN_STIFFNESS",
@@ -593,7 +592,8 @@ class SkinSystem(eqx.Module):
             ``(C,)`` vertices per cluster (its length is the static ``C``); all ``(0,)``
             without clusters.
         influence: ``(V,)``; inv_mass: ``(V,)`` (0 = kinematic).
-        anchor_k: ``(V,)`` anchor stiffness; anchor_inv_count: ``(V,)``.
+        anchors: the engine's anchor group of every vertex (stiffness ``(V,)``; targets set
+            per solve from :func:`skin_targets`).
         lid_ids, lid_fall, lid_pivot, lid_axis, lid_ctrl_angles: eyelids.
         puff_dir: ``(V, 3)`` cheek-puff displacement per unit pressure, mm.
         mem_ids, mem_border, mem_H: the unsupported skin whose targets are interpolated from
@@ -601,11 +601,12 @@ class SkinSystem(eqx.Module):
         fat_tri, fat_area0, fat_gain, fat_ratio: the fat layer (:func:`fat_thickness`):
             ``(T, 3)`` triangles (none when off), ``(V,)`` rest areas mm^2, ``(V,)`` gains,
             the static ratio range.
-        groups: fused stretch/cross, area, bending groups; volume: the skin volume group.
+        groups: the engine's stretch/cross, area, bending groups (:mod:`jaxface.pbd`);
+            volume: the skin volume group (or None; its rest volume is set per solve).
         upper_hull, lower_hull: hull collision groups (or None); lower_planes: rest planes.
         iterations: static sweeps of the quasi-static solve.
         checkpoint: static; checkpoint every sweep for reverse mode
-            (:func:`jaxface.anatomy.solver.iterate`; on by default, the muscles' off: see
+            (:func:`jaxface.pbd.iterate`; on by default, the muscles' off: see
             :class:`jaxface.anatomy.muscles.MuscleSystem`).
     """
 
@@ -622,9 +623,7 @@ class SkinSystem(eqx.Module):
     fp_count: jax.Array
     influence: jax.Array
     inv_mass: jax.Array
-    anchor_k: jax.Array
-    anchor_ids: jax.Array
-    anchor_inv_count: jax.Array
+    anchors: pbd.Group
     lid_ids: jax.Array
     lid_fall: jax.Array
     lid_upper: jax.Array
@@ -639,10 +638,10 @@ class SkinSystem(eqx.Module):
     fat_tri: jax.Array
     fat_area0: jax.Array
     fat_gain: jax.Array
-    groups: tuple
-    volume: object
-    upper_hull: object
-    lower_hull: object
+    groups: tuple[pbd.Group, ...]
+    volume: pbd.Group | None
+    upper_hull: pbd.Group | None
+    lower_hull: pbd.Group | None
     lower_planes: tuple
     iterations: int = eqx.field(static=True, default=12)
     chebyshev_rho: float = eqx.field(static=True, default=0.0)
@@ -673,7 +672,7 @@ def _hull_group(
     # vertices inside at rest keep their rest penetration (the rest state is collision-free)
     clr = np.minimum(clearance, depth[cand] - 1e-6)
     g = pbd.hull_constraints(cand, N, d, clearance=clr, stiffness=1.0)
-    return fused_group(g, n, name="teeth"), (N, d)
+    return pbd.make_group(g, n, name="teeth"), (N, d)
 
 
 def build_skin_system(
@@ -751,7 +750,7 @@ def build_skin_system(
     tk = np.concatenate([np.full(len(e), k["stretch"]), np.full(len(pairs), k["cross"])])
     keep = dyn[te].any(axis=1)
     groups.append(
-        fused_group(
+        pbd.make_group(
             pbd.distance_constraints(te[keep], x, stiffness=tk[keep]),
             V,
             omega=1.5,
@@ -762,7 +761,7 @@ def build_skin_system(
     tkeep = dyn[tri].any(axis=1)
     if k["area"] > 0 and tkeep.any():
         groups.append(
-            fused_group(
+            pbd.make_group(
                 pbd.area_constraints(tri[tkeep], x, stiffness=k["area"]),
                 V,
                 omega=1.0,
@@ -772,7 +771,7 @@ def build_skin_system(
     if bending and k["bend"] > 0 and len(pairs):
         bkeep = dyn[pairs].any(axis=1)
         groups.append(
-            fused_group(
+            pbd.make_group(
                 pbd.bending_constraints(pairs[bkeep], x, stiffness=k["bend"]),
                 V,
                 omega=1.0,
@@ -783,7 +782,11 @@ def build_skin_system(
 
     vol = None
     if k["volume"] > 0:
-        vol = pbd.volume_constraint(tri, x, origin=head_centre(frame), stiffness=k["volume"])
+        vol = pbd.make_group(
+            pbd.volume_constraint(tri, x, origin=head_centre(frame), stiffness=k["volume"]),
+            V,
+            name="skin volume",
+        )
     # footprint
     F = footprint_operator(
         skin,
@@ -821,7 +824,6 @@ def build_skin_system(
     mem = np.zeros(V, bool) if membrane is None else (np.asarray(membrane, bool) & dyn)
     mem_ids, mem_border, mem_H = membrane_interpolation(skin, mem)
     anchor_k[mem_ids] = 1.0
-    acnt = np.ones(V)
     if mem_ids.size:
         # the membrane has no layer under it; its border, which it is interpolated from, keeps
         # its rest thickness too (a thickened border bulged the membrane's edge into 2 folds)
@@ -842,9 +844,9 @@ def build_skin_system(
         fp_count=to_jax(np.bincount(F.member_c, weights=F.member_w, minlength=F.n_clusters)),
         influence=to_jax(infl),
         inv_mass=to_jax(inv_mass),
-        anchor_k=to_jax(anchor_k),
-        anchor_ids=jnp.arange(V),
-        anchor_inv_count=to_jax(acnt),
+        anchors=pbd.make_group(
+            pbd.anchor_constraints(np.arange(V), x, stiffness=anchor_k), V, name="skin anchors"
+        ),
         lid_ids=to_jax(np.concatenate(lid_ids) if lid_ids else np.zeros(0, np.int64)),
         lid_fall=to_jax(np.concatenate(lid_fall) if lid_fall else np.zeros(0)),
         lid_upper=to_jax(np.concatenate(lid_upper) if lid_upper else np.zeros(0, bool)),
@@ -968,27 +970,12 @@ def fat_thickness(surface_points, tri, area0, gain, ratio_range=FAT_RATIO_RANGE)
     return jnp.exp(jnp.asarray(gain, dt) * jnp.log(jnp.clip(ratio, lo, hi)))
 
 
-def _hull_project(g, x, normals, offsets):
-    """Push the hull group's particles out of the (moved) hull, fully."""
-    c = g.c
-    dt = x.dtype
-    N = normals.astype(dt)
-    ids = c.idx[:, 0]
-    p = x[ids]
-    sd = p @ N.T - offsets.astype(dt)[None]
-    top = jnp.max(sd, axis=1)
-    # normal of the nearest plane: a one-hot matrix product (XLA's CPU argmax over the
-    # planes took twice as long as the whole rest of the projection); equal distances to
-    # two planes (an edge of the hull) average their normals
-    hit = (sd >= top[:, None]).astype(dt)
-    n_near = (hit @ N) / jnp.sum(hit, axis=1, keepdims=True)
-    C = top - c.clearance.astype(dt)
-    push = jnp.where(C < 0, -C, 0.0)
-    return x.at[ids].add(push[:, None] * n_near, unique_indices=True)
-
-
 def solve_skin(sk: SkinSystem, targets, R, t, *, iterations: int | None = None, x0=None):
     """Quasi-static skin solve: anchors to ``targets``, thesis constraints, teeth collisions.
+
+    Each sweep of the engine (fused Jacobi, :func:`jaxface.pbd.sweep`) projects, in order:
+    the anchors, stretch/cross, area, bending, the capped volume (its rest volume is the one
+    the targets imply) and the two teeth hulls (the lower one moved with the jaw).
 
     Args:
         sk: the :class:`SkinSystem`.
@@ -1000,46 +987,30 @@ def solve_skin(sk: SkinSystem, targets, R, t, *, iterations: int | None = None, 
     Returns:
         ``(V, 3)`` mm.
     """
-    from .solver import iterate, sweep
-
     iters = sk.iterations if iterations is None else int(iterations)
     dt = targets.dtype
     inv_mass = sk.inv_mass.astype(dt)
     rest = sk.rest.astype(dt)
     dyn = (inv_mass > 0)[:, None]
     x = jnp.where(dyn, targets, rest) if x0 is None else jnp.asarray(x0, dt)
-    vol = sk.volume
-    if vol is not None:
+    groups = (sk.anchors.set(target=targets),) + tuple(sk.groups)
+    if sk.volume is not None:
         # the volume the underlying structures imply: the capped volume of the targets
-        xt = jnp.where(dyn, targets, rest).T
-        P = tuple(xt[:, vol.idx[:, k]] for k in range(3))
-        v_ = eqx.tree_at(lambda q: q.origin, vol, vol.origin.astype(dt))
-        vol = eqx.tree_at(
-            lambda q: q.rest, vol, v_.volume_terms(P)[0].reshape(1).astype(vol.rest.dtype)
-        )
-    lower = None
+        vol = sk.volume.c
+        assert isinstance(vol, pbd.VolumeConstraint)
+        vol = eqx.tree_at(lambda q: q.origin, vol, vol.origin.astype(dt))
+        groups += (sk.volume.set(rest=vol.volume(jnp.where(dyn, targets, rest))),)
+    if sk.upper_hull is not None:
+        groups += (sk.upper_hull,)
     if sk.lower_hull is not None:
-        lower = pbd.transform_planes(
+        n, d = pbd.transform_planes(
             sk.lower_planes[0].astype(dt), sk.lower_planes[1].astype(dt), R.astype(dt), t.astype(dt)
         )
-    kk = sk.anchor_k.astype(dt)[:, None]
-
-    def body(x):
-        x = x + jnp.where(dyn, kk * (targets - x), 0.0)
-        x = sweep(sk.groups, x, inv_mass)
-        if vol is not None:
-            x = sweep((fused_group_static(vol),), x, inv_mass)
-        if sk.upper_hull is not None:
-            x = _hull_project(sk.upper_hull, x, sk.upper_hull.c.normals, sk.upper_hull.c.offsets)
-        if lower is not None:
-            x = _hull_project(sk.lower_hull, x, lower[0], lower[1])
-        return x
-
-    return iterate(body, x, iters, sk.chebyshev_rho, checkpoint=sk.checkpoint)
-
-
-def fused_group_static(vol):
-    """Wrap the volume constraint for :func:`jaxface.anatomy.solver.sweep` (no counts needed)."""
-    from .solver import FusedGroup
-
-    return FusedGroup(c=vol, inv_count=jnp.zeros((1,)), omega=1.0, name="skin volume")
+        groups += (sk.lower_hull.set(normals=n, offsets=d),)
+    return pbd.iterate(
+        lambda x: pbd.sweep(groups, x, inv_mass),
+        x,
+        iters,
+        sk.chebyshev_rho,
+        checkpoint_every=1 if sk.checkpoint else None,
+    )

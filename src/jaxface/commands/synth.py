@@ -215,7 +215,7 @@ def parse_sweeps(text: str) -> tuple[int, int, float]:
         raise RigError(f"--sweeps {text!r}: {hint}") from None
     if m < 1 or k < 1:
         raise RigError(f"--sweeps {text!r}: both sweep counts must be at least 1.")
-    from ..anatomy.solver import check_rho
+    from ..pbd import check_rho
 
     return m, k, check_rho(rho, f"--sweeps {text!r}: RHO")
 
