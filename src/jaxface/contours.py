@@ -275,7 +275,7 @@ def loop_arcs(mesh, loop: np.ndarray, a: int, b: int) -> tuple[np.ndarray, np.nd
 # feature extraction
 # ------------------------------------------------------------------------------------------
 def _snap(mesh, points: np.ndarray) -> np.ndarray:
-    from scipy.spatial import cKDTree
+    from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]
 
     return (
         cKDTree(mesh.vertices)
@@ -287,8 +287,8 @@ def _snap(mesh, points: np.ndarray) -> np.ndarray:
 def extract_contour(
     mesh,
     name: str,
-    upper: Sequence[int],
-    lower: Sequence[int],
+    upper: Sequence[int] | np.ndarray,
+    lower: Sequence[int] | np.ndarray,
     *,
     loop_tol: float = 0.25,
     use_loops: bool = True,

@@ -71,7 +71,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial import cKDTree
+from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]
 
 from .errors import LandmarkError, RBFError, RigError, ScanFormatError
 from .landmarks import FACE_LABELS, MIRROR_PAIRS, STABLE_LABELS, Landmarks
@@ -593,6 +593,7 @@ def _snap(face: Face, points: np.ndarray, mode: str) -> np.ndarray:
     if mode != "surface":
         raise RigError(f"unknown snap mode {mode!r}; use 'vertex' or 'surface'")
     mesh = face.mesh()
+    assert mesh is not None  # the face has triangles here
     sp, _ = mesh.closest_points(points)
     tri = np.asarray(sp.tri, dtype=np.int64)
     bary = np.asarray(sp.bary, dtype=np.float64)
@@ -733,6 +734,7 @@ class Animation:
 
     def at_magnitude(self, m: float) -> np.ndarray:
         """(V, 3) animated vertices at another magnitude ``m`` (the warp is linear in ``m``)."""
+        assert self._unit_field is not None  # animate() sets it
         return self.neutral + float(m) * self._unit_field
 
 
@@ -862,6 +864,7 @@ def animate(
     if align:
         if se.triangles is not None and sn.triangles is not None:
             mesh_n = sn.mesh()
+            assert mesh_n is not None  # sn has triangles here
             rej = np.zeros(len(sn.vertices), bool)
             rej[np.asarray(mesh_n.boundary_edges, dtype=np.int64).ravel()] = True
             T_align, _, icp_info, more = align_points(
@@ -1049,6 +1052,7 @@ def fit_magnitude(
     if not sel.any():
         return 0.0, 0.0
     tree = cKDTree(np.asarray(target_points, dtype=np.float64))
+    assert animation._unit_field is not None  # animate() sets it
     x0, u = animation.neutral[sel], animation._unit_field[sel]
 
     def cost(mm):

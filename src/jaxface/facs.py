@@ -232,6 +232,7 @@ def sort_aus(values: dict) -> dict:
 
     def key(k):
         m = _AU_RE.match(k)
+        assert m is not None, k  # the keys are AU names
         return (int(m.group(1)), m.group(2) or "")
 
     return dict(sorted(values.items(), key=lambda kv: key(kv[0])))

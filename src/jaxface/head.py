@@ -902,6 +902,7 @@ def _slit_warp(s: _Slit, theta, dphi, side):
     the slit ring, on ``side`` (+1 above / upper edge, -1 below / lower edge)."""
     span = s.theta_b - s.theta_a
     k = s.theta_knots
+    assert k is not None and s.bend is not None and s.a_up is not None and s.a_lo is not None
     inside = (theta >= k[0]) & (theta <= k[-1])
     bend_in = np.interp(theta, k, s.bend)
     # outside the slit the bend fades out over half a slit length

@@ -49,6 +49,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.core import Tracer
 
 from ._parallel import thread_map
 from .errors import RBFError
@@ -276,7 +277,7 @@ def _evaluate(morph: Morph, points, chunk: int):
 # validation (concrete inputs only)
 # --------------------------------------------------------------------------------------
 def _is_concrete(*xs) -> bool:
-    return not any(isinstance(x, jax.core.Tracer) for x in xs)
+    return not any(isinstance(x, Tracer) for x in xs)
 
 
 def find_duplicates(src, rtol: float = _DUPLICATE_RTOL) -> list[np.ndarray]:
@@ -290,7 +291,7 @@ def find_duplicates(src, rtol: float = _DUPLICATE_RTOL) -> list[np.ndarray]:
     Returns:
         a list of index arrays (ascending), one per group of two or more coincident centres.
     """
-    from scipy.spatial import cKDTree
+    from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]
 
     p = np.asarray(src, dtype=np.float64)
     if p.shape[0] < 2:

@@ -154,6 +154,7 @@ def _scan_and_fit(rig, head, out: Path, say, timings) -> list[dict]:
     def scan_of(x, stem):
         s = scan_skin(x, bound, path=f"{stem}.bnt")
         write_bnt(scans_dir / f"{stem}.bnt", s)
+        assert s.landmarks is not None  # scan_skin carries the landmarks
         write_lm3(scans_dir / f"{stem}.lm3", s.landmarks)
         return s
 

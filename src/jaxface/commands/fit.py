@@ -24,7 +24,7 @@ import time
 import warnings
 from enum import Enum
 from pathlib import Path
-from typing import List
+from typing import List  # noqa: UP035 (typer options keep List[str], see UP006 below)
 
 import typer
 

@@ -290,7 +290,7 @@ def prepare_subject(
             "the rig's skin topology differs from the registered template's; cannot attach "
             "the landmarks and the face mask."
         )
-    face_tri = np.asarray(reg.face_mask, bool)[tris].all(axis=1)
+    face_tri = np.asarray(np.asarray(reg.face_mask, bool)[tris].all(axis=1))
     if not face_tri.any():
         raise FitError("the template's face mask selects no triangle of the skin.")
     lp = reg.landmark_points
@@ -352,7 +352,7 @@ def subject_from_rig(
     fm = np.ones(V, bool) if face_mask is None else np.asarray(face_mask, bool)
     if fm.shape != (V,):
         raise FitError(f"face_mask must be ({V},) bool over the rig skin, got {fm.shape}.")
-    face_tri = fm[tris].all(axis=1)
+    face_tri = np.asarray(fm[tris].all(axis=1))
     lm = landmark_dict(rig.info.landmarks)
     names = list(lm)
     cp = SurfaceIndex(rest, tris).query(np.stack([lm[n] for n in names]))
@@ -660,6 +660,8 @@ class ExpressionFit:
 
         os.environ.setdefault("MPLBACKEND", "Agg")
         import matplotlib
+        import matplotlib.cm
+        import matplotlib.colors
         from matplotlib.figure import Figure
 
         from ..render import Layer, draw, save_figure
@@ -701,7 +703,7 @@ class ExpressionFit:
         sm = matplotlib.cm.ScalarMappable(
             norm=matplotlib.colors.Normalize(0.0, hi), cmap=matplotlib.colormaps["magma"]
         )
-        cax = fig.add_axes([1.0 - 0.8 / fig.get_figwidth(), 0.12, 0.18 / fig.get_figwidth(), 0.7])
+        cax = fig.add_axes((1.0 - 0.8 / fig.get_figwidth(), 0.12, 0.18 / fig.get_figwidth(), 0.7))
         fig.colorbar(sm, cax=cax).set_label("distance to scan (mm)")
         s = self.metrics.scan_to_fit["all"]
         fig.suptitle(

@@ -521,30 +521,33 @@ class Scan:
     @property
     def grid_index(self) -> np.ndarray:
         """(nrows, ncols) int64: index into ``points`` of each pixel, -1 for background."""
-        self._need_grid("grid_index")
-        idx = np.full(self.shape, -1, dtype=np.int64)
-        idx[self.valid] = np.arange(self.n_points)
+        shape, valid = self._need_grid("grid_index")
+        idx = np.full(shape, -1, dtype=np.int64)
+        idx[valid] = np.arange(self.n_points)
         return idx
 
     def xyz_grid(self, fill: float = np.nan) -> np.ndarray:
         """(nrows, ncols, 3) mm, background pixels set to ``fill``."""
-        self._need_grid("xyz_grid")
-        g = np.full(self.shape + (3,), fill, dtype=np.float64)
-        g[self.valid] = self.points
+        shape, valid = self._need_grid("xyz_grid")
+        g = np.full(shape + (3,), fill, dtype=np.float64)
+        g[valid] = self.points
         return g
 
     def grid_spacing(self) -> float:
         """Median distance in mm between horizontally or vertically adjacent valid pixels,
         measured in the image (x, y) plane."""
-        self._need_grid("grid_spacing")
-        return _grid_spacing(self.xyz_grid(), self.valid, self.path or "scan")
+        _, valid = self._need_grid("grid_spacing")
+        return _grid_spacing(self.xyz_grid(), valid, self.path or "scan")
 
-    def _need_grid(self, what: str):
+    def _need_grid(self, what: str) -> tuple[tuple[int, int], np.ndarray]:
+        """``(shape, valid)`` of a range-grid scan; ScanFormatError for a mesh scan."""
         if self.shape is None:
             raise ScanFormatError(
                 f"{self.path or 'scan'}: {what} needs a range-grid scan (.bnt); "
                 f"this is a mesh scan."
             )
+        assert self.valid is not None  # a grid scan always has its valid mask
+        return self.shape, self.valid
 
     # -- meshing -------------------------------------------------------------------------
     def mesh_arrays(
@@ -569,7 +572,7 @@ class Scan:
         else:
             tri = grid_triangles(
                 self.xyz_grid(),
-                self.valid,
+                self._need_grid("mesh_arrays")[1],
                 max_edge_factor=max_edge_factor,
                 spacing=self.grid_spacing(),
             )
@@ -728,8 +731,8 @@ def read_bnt(path: str | Path, *, units: str = "mm", check_size: bool = True) ->
             stacklevel=2,
         )
     planes = np.frombuffer(data, dtype="<f8", count=count, offset=off).reshape(5, nrows, ncols)
-    xyz = np.stack(planes[:3], axis=-1).astype(np.float64)
-    uv = np.stack(planes[3:], axis=-1).astype(np.float64)
+    xyz = np.stack(list(planes[:3]), axis=-1).astype(np.float64)
+    uv = np.stack(list(planes[3:]), axis=-1).astype(np.float64)
     valid = np.all(xyz != zmin, axis=2)
     pts = xyz[valid]
     _check_points(pts, valid, path)
@@ -931,7 +934,7 @@ def load_scan(
         path: scan file; dispatch on the extension.
         landmarks: ``.lm3`` file (mm, same units as the scan); ``None`` = the file beside
             the scan with suffix ``.lm3`` if it exists (for ``x.truth.ply``, ``x.lm3`` is also
-            tried); ``False`` = no landmarks.
+            tried; ``True`` means the same); ``False`` = no landmarks.
         units: unit of the scan and landmark coordinates; converted to mm.
         require: labels that must be present (:class:`LandmarkError` listing all missing).
         warn_missing: warn (:class:`MissingLandmarkWarning`) about Bosphorus face labels
@@ -975,7 +978,7 @@ def load_scan(
         raise ScanFormatError(f"{path}: unknown scan format {ext!r}; use .bnt, .obj or .ply")
 
     lm_path: Path | None = None
-    if landmarks is None:
+    if landmarks is None or landmarks is True:
         cands = [path.with_suffix(".lm3")]
         if path.name.lower().endswith(".truth.ply"):
             cands.append(path.with_name(path.name[: -len(".truth.ply")] + ".lm3"))
@@ -1050,7 +1053,7 @@ def complete_landmarks(
     offset = float(np.mean([m @ normal for m in mids]))
     tree = None
     if points is not None:
-        from scipy.spatial import cKDTree
+        from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]
 
         tree = cKDTree(np.asarray(points, dtype=np.float64))
     new_names, new_pos, done = list(landmarks.names), [np.asarray(landmarks.positions)], []

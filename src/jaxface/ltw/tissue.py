@@ -45,6 +45,8 @@ every node of a vertex used by no triangle.
 
 from __future__ import annotations
 
+from typing import Any
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -276,7 +278,7 @@ def element_volume_grad(ex):
     """
     xp = jnp if isinstance(ex, jax.Array) else np
     vol = 0.0
-    grads = [0.0] * 9
+    grads: list[Any] = [0.0] * 9
     for off in (0, 3):
         a, b, c, d, e, f = (ex[:, off + k] for k in range(6))
         ids = [off + k for k in range(6)]
@@ -450,6 +452,9 @@ def build_tissue(
     used[t.reshape(-1)] = True
     uv = vid[used]
 
+    si: Any
+    sj: Any
+    fam: Any
     si, sj, fam = [], [], []
 
     def add(i, j, f):
