@@ -155,15 +155,17 @@ class Morph(eqx.Module):
         radii2: ``(n,)`` squared stiffness radii in the normalised frame (multiquadric;
             zeros otherwise).
         kernel: kernel name (static).
+
+    Arrays are JAX from :func:`fit`, NumPy from :func:`fit_numpy`.
     """
 
-    centres: jax.Array
-    targets: jax.Array
-    weights: jax.Array
-    affine: jax.Array
-    shift: jax.Array
-    scale: jax.Array
-    radii2: jax.Array
+    centres: jax.Array | np.ndarray
+    targets: jax.Array | np.ndarray
+    weights: jax.Array | np.ndarray
+    affine: jax.Array | np.ndarray
+    shift: jax.Array | np.ndarray
+    scale: jax.Array | np.ndarray
+    radii2: jax.Array | np.ndarray
     kernel: str = eqx.field(static=True)
 
     @property

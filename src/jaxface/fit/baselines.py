@@ -35,7 +35,8 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from ..errors import LandmarkError
-from ..io.preprocess import RigidTransform
+from ..rbf import KernelName
+from ..rigid import RigidTransform
 from .metrics import landmark_dict, mesh_arrays
 
 __all__ = [
@@ -93,7 +94,7 @@ def baseline_b1(
     *,
     neutral_landmarks=None,
     labels: Sequence[str] | None = None,
-    kernel: str = "tps",
+    kernel: KernelName = "tps",
     reg: float = 0.0,
 ):
     """B1: landmark-only TPS warp of the registered neutral (see the module doc).
@@ -235,6 +236,7 @@ def baseline_b2(
             mask = mask & np.asarray(fm, bool)
         m, _ = fit_magnitude(anim, T.apply(pts), mask=mask, bounds=bounds, cap_mm=cap_mm)
     else:
+        assert magnitude is not None  # pts is None only for a given magnitude
         m = float(magnitude)
     return BaselineB2(
         TriMesh(T.inverse().apply(anim.at_magnitude(m)), f, validate=False), float(m), anim

@@ -42,8 +42,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import DataNotFoundError, FitError
-from ..io.preprocess import RigidTransform
-from .align import rotation_from_euler
+from ..rigid import RigidTransform, rotation_from_euler
 from .metrics import DistanceStats, FacePlane, SurfaceIndex, mesh_arrays
 
 __all__ = [

@@ -53,14 +53,15 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
-from scipy.spatial import cKDTree
+from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]
 
 from ..errors import FitError, LandmarkError
+from ..normals import vertex_normals
 from .metrics import DistanceStats, SurfaceIndex, landmark_dict, mesh_arrays
 
 __all__ = [
@@ -209,7 +210,7 @@ def cotangent_laplacian(
     W.data = np.clip(W.data, clamp[0], clamp[1])
     W.eliminate_zeros()
     d = np.asarray(W.sum(axis=1)).ravel()
-    return (sp.diags(d) - W).tocsr()
+    return cast(sp.csr_matrix, (sp.diags(d) - W).tocsr())
 
 
 # --------------------------------------------------------------------------------------
@@ -310,15 +311,6 @@ def _attach(vertices, triangles, points):
     """SurfacePoints-like attachment (tri ids, bary) of points to a mesh, exact."""
     cp = SurfaceIndex(vertices, triangles).query(points)
     return cp.triangles, cp.bary, cp.distances
-
-
-def _vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
-    cr = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    n = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(n, f[:, k], cr)
-    ln = np.linalg.norm(n, axis=1, keepdims=True)
-    return np.where(ln > 0, n / np.where(ln > 0, ln, 1.0), 0.0)
 
 
 def register_template(
@@ -455,7 +447,7 @@ def register_template(
         X = X_ref + D
         tau = float(np.clip(2.0 * ell, opt.min_distance_mm, opt.max_distance_mm))
         cp = index.query(X[data_ids], max_distance=tau, exact=False)
-        nrm = _vertex_normals(X, tf)[data_ids]
+        nrm = vertex_normals(X, tf)[data_ids]
         ok = (
             (cp.distances <= tau)
             & ~cp.on_boundary
@@ -527,7 +519,7 @@ def register_template(
     X = X_ref + D
     # final residuals (exact)
     cp = index.query(X, max_distance=max(opt.data_tolerance_mm, 1e-6) * 4)
-    nrm = _vertex_normals(X, tf)
+    nrm = vertex_normals(X, tf)
     has = (
         (cp.distances <= opt.data_tolerance_mm)
         & ~cp.on_boundary

@@ -30,10 +30,11 @@ carries morph targets or simulated expressions over to the scan's pixels.
 from __future__ import annotations
 
 import dataclasses
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal, overload
 
 import numpy as np
 
+from ..closest import SurfaceIndex
 from ..errors import MeshError, ScanFormatError
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -287,6 +288,40 @@ def cast_grid(vertices, triangles, xs, ys, *, chunk: int = 2_000_000) -> GridHit
     )
 
 
+@overload
+def scan_mesh(
+    mesh,
+    resolution: float = ...,
+    *,
+    bounds=...,
+    landmarks: Landmarks | None = ...,
+    max_angle_deg: float | None = ...,
+    noise_mm: float = ...,
+    seed: int | None = ...,
+    image_name: str = ...,
+    path=...,
+    zmin: float = ...,
+    return_hits: Literal[False] = ...,
+) -> Scan: ...
+
+
+@overload
+def scan_mesh(
+    mesh,
+    resolution: float = ...,
+    *,
+    bounds=...,
+    landmarks: Landmarks | None = ...,
+    max_angle_deg: float | None = ...,
+    noise_mm: float = ...,
+    seed: int | None = ...,
+    image_name: str = ...,
+    path=...,
+    zmin: float = ...,
+    return_hits: Literal[True],
+) -> tuple[Scan, GridHits]: ...
+
+
 def scan_mesh(
     mesh,
     resolution: float = DEFAULT_RESOLUTION_MM,
@@ -300,7 +335,7 @@ def scan_mesh(
     path=None,
     zmin: float = -1.0e9,
     return_hits: bool = False,
-):
+) -> Scan | tuple[Scan, GridHits]:
     """Scan a mesh into a Bosphorus-style range grid (virtual scanner looking along ``-z``).
 
     Args:
@@ -424,8 +459,6 @@ class SkinLandmarks:
     @classmethod
     def bind(cls, rest, triangles, landmarks: Landmarks) -> SkinLandmarks:
         """Bind ``landmarks`` (mm) to the rest skin ``(V, 3)`` mm with ``(F, 3)`` triangles."""
-        from ..fit.metrics import SurfaceIndex
-
         tris = np.asarray(triangles)
         cp = SurfaceIndex(np.asarray(rest, dtype=np.float64), tris).query(
             np.asarray(landmarks.positions)

@@ -34,7 +34,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..anatomy.jaw import JawModel
 from ..errors import RigError
+from ..mesh import TriMesh
+from ..rigid import rotate_about_axes
 from .forces import kinematic_positions
 from .integrate import LTWModel, make_model, relax, residual
 from .tissue import LTWParams, build_tissue
@@ -56,6 +59,8 @@ class LTWInfo:
     Attributes: skin (TriMesh), landmarks, frame, skull, placed (PlacedMuscle list), specs,
     depth ``(V,)`` mm, mandible ``(V,)`` bool, fibres (list of :class:`Fibre`).
     """
+
+    skin: TriMesh
 
     def __init__(self, **kw):
         self.__dict__.update(kw)
@@ -83,7 +88,7 @@ class LTWRig(eqx.Module):
     """
 
     model: LTWModel
-    jaw: object
+    jaw: JawModel
     lid_nodes: jax.Array
     lid_fall: jax.Array
     lid_upper: jax.Array
@@ -323,6 +328,7 @@ def build_ltw_rig(
             lid_fall.append(fall)
             lid_upper.append(upper)
             lid_side.append(np.full(len(ids), k))
+        assert pm.axes is not None  # placement gives every eyelid its axes
         piv.append(np.asarray(pm.centre, float))
         axs.append(np.asarray(pm.axes[0], float))
         angs.append(angles)
@@ -415,16 +421,6 @@ def _puff_field(mesh, frame) -> np.ndarray:
 # ----------------------------------------------------------------------------- synthesis
 
 
-def _rotate(p, pivot, axis, angle):
-    """Rodrigues rotation of points ``p (K, 3)`` about ``axis (K, 3)`` through ``pivot (K, 3)``
-    by ``angle (K,)`` radians."""
-    r = p - pivot
-    c, s = jnp.cos(angle)[:, None], jnp.sin(angle)[:, None]
-    kxr = jnp.cross(axis, r)
-    kdr = jnp.sum(axis * r, axis=-1, keepdims=True)
-    return pivot + r * c + kxr * s + axis * kdr * (1.0 - c)
-
-
 def _check_acts(rig: LTWRig, activations):
     a = jnp.asarray(activations)
     if a.ndim != 1 or a.shape[0] != rig.n_controls:
@@ -464,7 +460,7 @@ def _drives(rig: LTWRig, a, R, t, puff):
         ang = jnp.einsum("c,csl->sl", a, rig.lid_angles.astype(a.dtype)) * (jnp.pi / 180.0)
         per = jnp.where(rig.lid_upper, ang[rig.lid_side, 0], ang[rig.lid_side, 1]) * rig.lid_fall
         p0 = kin[rig.lid_nodes]
-        rot = _rotate(p0, rig.lid_pivot[rig.lid_side], rig.lid_axis[rig.lid_side], per)
+        rot = rotate_about_axes(p0, rig.lid_pivot[rig.lid_side], rig.lid_axis[rig.lid_side], per)
         kin = kin.at[rig.lid_nodes].set(rot)
     ext = jnp.zeros_like(tis.rest).at[V : 2 * V].set(puff * rig.puff_force * rig.puff_field)
     return kin, ext
