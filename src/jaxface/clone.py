@@ -57,6 +57,8 @@ from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]
 
 from . import contours as _contours
 from .errors import LandmarkError, MeshError
+from .landmarks import Landmarks
+from .mesh import TriMesh
 from .normals import vertex_normals
 from .rbf import KernelName, Morph, fit_numpy
 
@@ -96,8 +98,6 @@ ENS0_DEFINITIONS: tuple[tuple[tuple[str, ...], str], ...] = (
 def as_trimesh(mesh, name: str = "mesh"):
     """A :class:`jaxface.mesh.TriMesh` from a TriMesh, a ``trimesh.Trimesh`` or a
     ``(vertices (V, 3) mm, triangles (F, 3))`` pair (not re-validated)."""
-    from .mesh import TriMesh
-
     if isinstance(mesh, TriMesh):
         return mesh
     if hasattr(mesh, "vertices") and hasattr(mesh, "faces"):
@@ -112,8 +112,6 @@ def as_trimesh(mesh, name: str = "mesh"):
 
 
 def _as_landmarks(lm, name: str):
-    from .landmarks import Landmarks
-
     if isinstance(lm, Landmarks):
         return lm
     if isinstance(lm, Mapping):
@@ -185,8 +183,6 @@ def cast_segments(
         ``(hit (R,) bool, tri (R,) int64, bary (R, 3), t (R,) signed distance along d in mm)``;
         rays that missed have ``tri = -1``, ``bary = 0``, ``t = inf``.
     """
-    from .mesh import TriMesh
-
     if mesh is None:
         if vertices is None or triangles is None:
             raise MeshError(
@@ -278,8 +274,6 @@ def map_onto_surface(points, normals, length: float, vertices, triangles) -> Sur
     Returns:
         :class:`SurfaceMap`.
     """
-    from .mesh import TriMesh
-
     p = np.asarray(points, dtype=np.float64)
     surface = TriMesh(np.asarray(vertices, dtype=np.float64), np.asarray(triangles), validate=False)
     hit, tri, bary, t = cast_segments(p, normals, length, mesh=surface)

@@ -24,6 +24,7 @@ from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]
 from ._parallel import thread_map
 from .errors import MeshError
 from .normals import vertex_normals
+from .surface import SurfacePoints
 
 __all__ = [
     "mesh_arrays",
@@ -157,8 +158,6 @@ class ClosestPoints:
 
     def surface_points(self):
         """The closest points as :class:`jaxface.surface.SurfacePoints` (JAX)."""
-        from ..surface import SurfacePoints
-
         return SurfacePoints(self.triangles, self.bary)
 
 

@@ -35,6 +35,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from .errors import LandmarkError, MeshError
+from .landmarks import Landmarks
 
 __all__ = [
     "BOSPHORUS_CONTOURS",
@@ -373,8 +374,6 @@ def extract_contours(
     Returns:
         ``{feature: Contour}`` (features with missing landmarks are left out).
     """
-    from .landmarks import Landmarks
-
     lm = landmarks if isinstance(landmarks, Landmarks) else Landmarks.from_dict(landmarks)
     spec = BOSPHORUS_CONTOURS if spec is None else spec
     out: dict[str, Contour] = {}

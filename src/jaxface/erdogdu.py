@@ -74,7 +74,11 @@ import numpy as np
 from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]
 
 from .errors import LandmarkError, RBFError, RigError, ScanFormatError
+from .io.bosphorus import Scan
+from .io.preprocess import RigidTransform, align_landmarks, align_points
 from .landmarks import FACE_LABELS, MIRROR_PAIRS, STABLE_LABELS, Landmarks
+from .mesh import TriMesh
+from .rbf import fit_numpy
 
 __all__ = [
     "ControlPoint",
@@ -446,8 +450,6 @@ class Face:
     def mesh(self):
         m = self.__dict__.get("_mesh")
         if m is None and self.triangles is not None:
-            from .mesh import TriMesh
-
             m = TriMesh(self.vertices, self.triangles, validate=False)
             object.__setattr__(self, "_mesh", m)
         return m
@@ -462,9 +464,6 @@ def as_face(obj, landmarks: Landmarks | None = None, name: str | None = None) ->
         LandmarkError: no landmarks given or found.
         ScanFormatError: vertices not (V, 3) finite.
     """
-    from .io.bosphorus import Scan
-    from .mesh import TriMesh
-
     if isinstance(obj, Face):
         return obj if landmarks is None else Face(obj.vertices, obj.triangles, landmarks, obj.name)
     if isinstance(obj, tuple) and len(obj) == 2 and isinstance(obj[1], Landmarks):
@@ -605,8 +604,6 @@ def _landmark_tps(
 ):
     """TPS on the landmarks common to both (matched by label), plus optional ``still`` (n, 3)
     mm points mapped to themselves."""
-    from .rbf import fit_numpy
-
     common = [n for n in src.names if n in dst]
     if len(common) < 5:
         raise LandmarkError(
@@ -726,8 +723,6 @@ class Animation:
 
     def mesh(self):
         """The animated target as a :class:`jaxface.mesh.TriMesh` (needs triangles)."""
-        from .mesh import TriMesh
-
         if self.triangles is None:
             raise RigError("the target was given as bare vertices; no mesh to return")
         return TriMesh(self.vertices, self.triangles, validate=False)
@@ -834,9 +829,6 @@ def animate(
         RigError: unsupported AU or option.
         LandmarkError: landmarks needed by the layout, the face frame or the alignment missing.
     """
-    from .io.preprocess import RigidTransform, align_landmarks, align_points
-    from .rbf import fit_numpy
-
     num, side = parse_au(au)
     layout = AU_LAYOUTS[num]
     sn = as_face(source_neutral, name="source neutral")
@@ -997,8 +989,6 @@ def resample_grid(scan, size: int = 150):
         a new grid :class:`jaxface.io.Scan` (mm), rows bottom to top.
     """
     import matplotlib.tri as mtri
-
-    from .io.bosphorus import Scan
 
     pts = np.asarray(scan.points, dtype=np.float64)
     if size < 2:

@@ -26,6 +26,7 @@ import re
 
 import numpy as np
 
+from .anatomy.jaw import JawPose
 from .errors import RigError
 
 __all__ = [
@@ -195,8 +196,6 @@ def aus_to_controls(aus: dict, muscle_names):
         ``(activations (M,) in [0, 1], JawPose, cheek_puff)``; contributions add up and are
         clipped to [0, 1] (jaw: to its limits by the jaw model).
     """
-    from .anatomy.jaw import JawPose
-
     names = list(muscle_names)
     a = np.zeros(len(names))
     jaw = np.zeros(3)

@@ -47,8 +47,9 @@ import functools
 import numpy as np
 from scipy.interpolate import make_smoothing_spline
 
-from .landmarks import BOSPHORUS_LABELS, Landmarks
-from .mesh import TriMesh
+from .landmarks import BOSPHORUS_LABELS, Landmarks, write_lm3
+from .mesh import TriMesh, save_mesh
+from .render import head_layers, save_views
 
 __all__ = ["Head", "generic_head", "build_head", "save_head", "RAY_ORIGIN", "EYE_RADIUS"]
 
@@ -1551,9 +1552,6 @@ def save_head(
     """
     from pathlib import Path
 
-    from .landmarks import write_lm3
-    from .mesh import save_mesh
-
     out = Path(directory)
     out.mkdir(parents=True, exist_ok=True)
     files = {}
@@ -1574,8 +1572,6 @@ def save_head(
         files[name] = out / f"{name}.ply"
         save_mesh(files[name], mesh, units=units)
     if picture:
-        from .render import head_layers, save_views
-
         files["picture"] = save_views(
             out / f"{stem}.png",
             head_layers(head),

@@ -51,11 +51,10 @@ from scipy.sparse.csgraph import dijkstra
 
 from .errors import DataNotFoundError, MeshError, UnitsError
 from .normals import vertex_normals
+from .surface import SurfacePoints
 
 if TYPE_CHECKING:  # pragma: no cover
     import trimesh
-
-    from .surface import SurfacePoints
 
 __all__ = [
     "TriMesh",
@@ -802,8 +801,6 @@ class TriMesh:
         """
         import trimesh
 
-        from .surface import SurfacePoints
-
         p = np.asarray(points, dtype=np.float64)
         if p.ndim != 2 or p.shape[1] != 3:
             raise MeshError(f"points must be (K, 3) in mm, got shape {p.shape}.", problem="shape")
@@ -869,8 +866,6 @@ class TriMesh:
         Returns:
             :class:`RayHits` (compact: one row per hit, ``ray_index`` maps back to the rays).
         """
-        from .surface import SurfacePoints
-
         o = np.asarray(origins, dtype=np.float64)
         d = np.asarray(directions, dtype=np.float64)
         if o.ndim == 1:

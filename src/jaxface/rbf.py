@@ -53,6 +53,7 @@ from jax.core import Tracer
 
 from ._parallel import thread_map
 from .errors import RBFError
+from .mesh import TriMesh
 
 __all__ = [
     "KERNELS",
@@ -609,7 +610,5 @@ def warp_points(morph: Morph, points) -> np.ndarray:
 def warp_mesh(morph: Morph, mesh):
     """Return a new :class:`jaxface.mesh.TriMesh` whose vertices are ``morph(mesh.vertices)``
     (mm) with the same triangles. Accepts a ``TriMesh`` or a ``trimesh.Trimesh``."""
-    from .mesh import TriMesh
-
     tris = mesh.triangles if hasattr(mesh, "triangles") else mesh.faces
     return TriMesh(morph.apply_np(np.asarray(mesh.vertices)), np.asarray(tris), validate=False)

@@ -56,6 +56,7 @@ import numpy as np
 
 from .. import pbd
 from .._arrays import to_jax
+from ..mesh import TriMesh
 from .muscle_map import PlacedMuscle, check_sphincter_rings
 from .solver import fused_group, iterate, sweep
 
@@ -417,8 +418,6 @@ def build_muscle_system(
         ``(PendingMuscles, SupportPoints)``: add the skin's skull points to the collector,
         then call ``PendingMuscles.finalize()``.
     """
-    from ..mesh import TriMesh
-
     meshes = registry.meshes
     with_mesh = [p for p in placed if p.mesh is not None]
     offsets = [0]

@@ -57,7 +57,8 @@ from ..mesh import TriMesh
 from ..rigid import rotate_about_axes
 from .frame import FaceFrame
 from .geometry import segment_cast, smooth_normals
-from .solver import fused_group
+from .skull import head_centre
+from .solver import FusedGroup, fused_group, iterate, sweep
 
 __all__ = [
     "SKIN_STIFFNESS",
@@ -782,7 +783,6 @@ def build_skin_system(
                 name="skin bending",
             )
         )
-    from .skull import head_centre
 
     vol = None
     if k["volume"] > 0:
@@ -993,8 +993,6 @@ def solve_skin(sk: SkinSystem, targets, R, t, *, iterations: int | None = None, 
     Returns:
         ``(V, 3)`` mm.
     """
-    from .solver import iterate, sweep
-
     iters = sk.iterations if iterations is None else int(iterations)
     dt = targets.dtype
     inv_mass = sk.inv_mass.astype(dt)
@@ -1034,6 +1032,4 @@ def solve_skin(sk: SkinSystem, targets, R, t, *, iterations: int | None = None, 
 
 def fused_group_static(vol):
     """Wrap the volume constraint for :func:`jaxface.anatomy.solver.sweep` (no counts needed)."""
-    from .solver import FusedGroup
-
     return FusedGroup(c=vol, inv_count=jnp.zeros((1,)), omega=1.0, name="skin volume")

@@ -25,9 +25,9 @@ import numpy as np
 from matplotlib.path import Path as MplPath
 
 from ..errors import DataNotFoundError, MeshError, RigError
-from ..mesh import TriMesh, load_mesh
+from ..mesh import TriMesh, load_mesh, unit_scale
 from ..rbf import KernelName, fit_numpy
-from .frame import FaceFrame, face_frame
+from .frame import REQUIRED_LABELS, FaceFrame, face_frame
 from .geometry import radial_project, smooth_field, smooth_normals
 
 __all__ = [
@@ -328,8 +328,6 @@ def _as_mesh(m, units: str, what: str, rotation=None) -> TriMesh:
     if isinstance(m, TriMesh):
         mesh = m
         if units != "mm":
-            from ..mesh import unit_scale
-
             mesh = mesh.with_vertices(mesh.vertices * unit_scale(units))
     else:
         p = Path(m)
@@ -490,8 +488,6 @@ def fit_skull(
     Returns:
         the fitted :class:`Skull` (``source="fitted"``).
     """
-    from .frame import REQUIRED_LABELS
-
     fs, ft = face_frame(template_landmarks), face_frame(landmarks)
     src = [fs.points[n] for n in REQUIRED_LABELS]
     dst = [ft.points[n] for n in REQUIRED_LABELS]

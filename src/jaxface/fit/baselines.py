@@ -34,8 +34,11 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from ..errors import LandmarkError
-from ..rbf import KernelName
+from ..erdogdu import SUPPORTED_AUS, animate, fit_magnitude
+from ..errors import FitError, LandmarkError
+from ..io.bosphorus import parse_scan_name
+from ..mesh import TriMesh
+from ..rbf import KernelName, fit_numpy
 from ..rigid import RigidTransform
 from .metrics import landmark_dict, mesh_arrays
 
@@ -68,8 +71,6 @@ def baseline_b0(registration, alignment=None):
     Returns:
         :class:`jaxface.mesh.TriMesh`, mm, expression scan frame.
     """
-    from ..mesh import TriMesh
-
     mesh = getattr(registration, "mesh", registration)
     v, f = mesh_arrays(mesh)
     return TriMesh(_transform_of(alignment).inverse().apply(v), f, validate=False)
@@ -115,9 +116,6 @@ def baseline_b1(
     Raises:
         LandmarkError: fewer than 5 common landmarks.
     """
-    from ..mesh import TriMesh
-    from ..rbf import fit_numpy
-
     T = _transform_of(alignment)
     nl = neutral_landmarks if neutral_landmarks is not None else registration.scan_landmarks
     disp = expression_landmark_displacements(nl, expression_landmarks, T, labels)
@@ -146,9 +144,6 @@ def b2_action_unit(scan) -> str | None:
     Arguments:
         scan: a :class:`jaxface.io.Scan`, a path or a stem such as ``"bs000_LFAU_12L_0"``.
     """
-    from ..erdogdu import SUPPORTED_AUS
-    from ..io.bosphorus import parse_scan_name
-
     name = getattr(scan, "path", None) or getattr(scan, "stem", None) or scan
     info = parse_scan_name(str(name))
     if info is None or info.kind not in ("LFAU", "UFAU") or len(info.aus) != 1:
@@ -210,10 +205,6 @@ def baseline_b2(
         RigError (unsupported AU), LandmarkError (landmarks missing): from
         :func:`jaxface.erdogdu.animate`; FitError: an expression scan without points.
     """
-    from ..erdogdu import animate, fit_magnitude
-    from ..errors import FitError
-    from ..mesh import TriMesh
-
     T = _transform_of(alignment)
     pts = None
     if magnitude is None:

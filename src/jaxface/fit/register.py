@@ -61,8 +61,13 @@ import scipy.sparse.linalg as spla
 from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]
 
 from ..errors import FitError, LandmarkError
+from ..head import generic_head
+from ..landmarks import Landmarks
+from ..mesh import TriMesh
 from ..normals import vertex_normals
-from .metrics import DistanceStats, SurfaceIndex, landmark_dict, mesh_arrays
+from ..rbf import fit_numpy
+from ..surface import SurfacePoints
+from .metrics import DistanceStats, SurfaceIndex, landmark_dict, landmark_errors, mesh_arrays
 
 __all__ = [
     "RegisterOptions",
@@ -148,8 +153,6 @@ class Template:
 
 def _as_template(template, template_landmarks, face_mask) -> Template:
     if template is None:
-        from ..head import generic_head
-
         template = Template.from_head(generic_head())
     elif not isinstance(template, Template):
         if hasattr(template, "mesh") and hasattr(template, "landmarks"):
@@ -268,8 +271,6 @@ class Registration:
 
     def landmark_errors(self) -> dict[str, float]:
         """label -> distance registered landmark to scan landmark, mm."""
-        from .metrics import landmark_errors
-
         return landmark_errors(self.landmarks, self.scan_landmarks)
 
     def to_dict(self) -> dict[str, Any]:
@@ -349,11 +350,6 @@ def register_template(
         LandmarkError: fewer than 5 common landmarks, or landmarks missing.
         FitError: no scan correspondence accepted (template and scan do not overlap).
     """
-    from ..landmarks import Landmarks
-    from ..mesh import TriMesh
-    from ..rbf import fit_numpy
-    from ..surface import SurfacePoints
-
     t_start = time.perf_counter()
     opt = options or RegisterOptions()
     tpl = _as_template(template, template_landmarks, face_mask)

@@ -50,15 +50,12 @@ import warnings
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..errors import DataNotFoundError, LandmarkError, ScanFormatError
+from ..errors import DataNotFoundError, LandmarkError, MeshError, ScanFormatError
 from ..landmarks import FACE_LABELS, MIRROR_PAIRS, Landmarks, canonical_label, read_lm3
-
-if TYPE_CHECKING:  # pragma: no cover
-    from ..mesh import TriMesh
+from ..mesh import TriMesh, check_plausible_size, load_mesh, unit_scale
 
 __all__ = [
     "Scan",
@@ -598,8 +595,6 @@ class Scan:
             validate: run :meth:`TriMesh.validate`; default True for grid scans and False for
                 mesh scans (scan meshes may hold degenerate triangles, which are tolerated).
         """
-        from ..mesh import TriMesh
-
         if validate is None:
             validate = self.is_grid
         v, t, _ = self.mesh_arrays(max_edge_factor, drop_unreferenced=self.is_grid)
@@ -793,15 +788,11 @@ def write_bnt(path: str | Path, scan: Scan, *, image_name: str | None = None) ->
 
 
 def _unit_scale(units: str) -> float:
-    from ..mesh import unit_scale
-
     return unit_scale(units)
 
 
 def _check_extent(pts: np.ndarray, units: str, path, check_size: bool) -> None:
     if check_size:
-        from ..mesh import check_plausible_size
-
         check_plausible_size(pts, units, source=str(path))
 
 
@@ -951,9 +942,6 @@ def load_scan(
     if ext == ".bnt":
         scan = read_bnt(path, units=units, check_size=check_size)
     elif ext in (".obj", ".ply"):
-        from ..errors import MeshError
-        from ..mesh import load_mesh
-
         try:
             # scans are data: degenerate or inconsistently oriented triangles are tolerated
             mesh = load_mesh(path, units=units, check_size=check_size, validate=False)

@@ -30,16 +30,14 @@ carries morph targets or simulated expressions over to the scan's pixels.
 from __future__ import annotations
 
 import dataclasses
-from typing import TYPE_CHECKING, Literal, overload
+from typing import Literal, overload
 
 import numpy as np
 
 from ..closest import SurfaceIndex
 from ..errors import MeshError, ScanFormatError
-
-if TYPE_CHECKING:  # pragma: no cover
-    from ..landmarks import Landmarks
-    from .bosphorus import Scan
+from ..landmarks import Landmarks
+from .bosphorus import Scan
 
 __all__ = [
     "DEFAULT_RESOLUTION_MM",
@@ -365,8 +363,6 @@ def scan_mesh(
         ScanFormatError: non-positive resolution or noise, a grid larger than
             :data:`MAX_GRID_PIXELS` or 65535 per side, or no ray hitting the mesh.
     """
-    from .bosphorus import Scan
-
     V, T = _as_arrays(mesh)
     res = float(resolution)
     if not (np.isfinite(res) and res > 0):
@@ -477,8 +473,6 @@ class SkinLandmarks:
 
     def landmarks(self, vertices) -> Landmarks:
         """The same as a :class:`jaxface.landmarks.Landmarks`."""
-        from ..landmarks import Landmarks
-
         return Landmarks(list(self.names), self.positions(vertices))
 
 

@@ -34,7 +34,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..anatomy.jaw import JawModel
+from ..anatomy.frame import face_frame
+from ..anatomy.geometry import smooth_normals
+from ..anatomy.jaw import JawModel, JawPose
+from ..anatomy.muscle_map import MuscleSpec, load_muscle_map, place_muscles
+from ..anatomy.skin import eyelid_vertices
+from ..anatomy.skull import estimate_skull, mandible_mask, tissue_depth
 from ..errors import RigError
 from ..mesh import TriMesh
 from ..rigid import rotate_about_axes
@@ -163,8 +168,6 @@ class LTWRig(eqx.Module):
 
 
 def _as_mesh(skin):
-    from ..mesh import TriMesh
-
     if isinstance(skin, TriMesh):
         return skin, None
     if hasattr(skin, "mesh") and isinstance(skin.mesh, TriMesh):
@@ -176,9 +179,6 @@ def _as_mesh(skin):
 
 def _skull_columns(mesh, frame, skull, depth):
     """Skull node per skin vertex ``(V, 3)`` and mandible mask ``(V,)``."""
-    from ..anatomy.geometry import smooth_normals
-    from ..anatomy.skull import mandible_mask
-
     V = mesh.n_vertices
     off = skull.extras.get("offset_mesh") if getattr(skull, "extras", None) else None
     if off is not None and off.n_vertices == V:
@@ -205,8 +205,6 @@ def _skull_columns(mesh, frame, skull, depth):
 
 
 def _fibres_for(pm, ci, frame, mean_edge):
-    from ..anatomy.skull import mandible_mask
-
     kind = pm.kind
     m = ci[pm.name]
     if kind in ("linear", "sheet"):
@@ -277,12 +275,6 @@ def build_ltw_rig(
     Raises:
         RigError, LandmarkError, MeshError: unusable inputs (named in the message).
     """
-    from ..anatomy.frame import face_frame
-    from ..anatomy.jaw import JawModel
-    from ..anatomy.muscle_map import MuscleSpec, load_muscle_map, place_muscles
-    from ..anatomy.skin import eyelid_vertices
-    from ..anatomy.skull import estimate_skull, tissue_depth
-
     mesh, head = _as_mesh(skin)
     if landmarks is None and head is not None:
         landmarks = head.landmarks
@@ -404,8 +396,6 @@ def _puff_field(mesh, frame) -> np.ndarray:
     """``(V, 3)`` cheek-puff field: outward smoothed normals times the PBD rig's cheek bump
     (Gaussian around (+-42, -58) reference mm in the face frame, radii 22 x 20 reference mm,
     only beyond 8 mm from the midline); dimensionless weight in [0, 1] times a unit vector."""
-    from ..anatomy.geometry import smooth_normals
-
     x = np.asarray(mesh.vertices, float)
     n0 = smooth_normals(mesh, 3)
     loc = frame.to_local(x)
@@ -434,8 +424,6 @@ def _check_acts(rig: LTWRig, activations):
 
 
 def _solve(rig: LTWRig, activations, jaw, cheek_puff, n_steps: int):
-    from ..anatomy.jaw import JawPose
-
     a = _check_acts(rig, activations)
     if jaw is None:
         jaw = JawPose()
@@ -497,8 +485,6 @@ def synthesize_ltw(rig: LTWRig, activations, jaw=None, cheek_puff=0.0):
 def equilibrium_residual(rig: LTWRig, activations, jaw=None, cheek_puff=0.0) -> float:
     """Largest equilibrium residual (mm, see :func:`jaxface.ltw.integrate.residual`) after
     ``rig.n_steps`` relaxation steps: a convergence check of a synthesis."""
-    from ..anatomy.jaw import JawPose
-
     jaw = JawPose() if jaw is None else jaw
     x = synthesize_nodes(rig, activations, jaw, cheek_puff)
     a = _check_acts(rig, activations).astype(x.dtype)

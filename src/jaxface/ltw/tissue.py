@@ -53,6 +53,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import MeshError, RigError
+from ..mesh import TriMesh
 
 __all__ = [
     "EPIDERMAL",
@@ -422,8 +423,6 @@ def build_tissue(
     clen = np.linalg.norm(col, axis=1)
     fdep = np.minimum(float(fascia_fraction) * clen, float(fascia_max_depth))
     if self_clearance > 0:
-        from ..mesh import TriMesh
-
         dirs = col / np.maximum(clen, 1e-300)[:, None]
         hits = TriMesh(v, t, validate=False).ray_cast(
             v,
