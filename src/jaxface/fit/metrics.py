@@ -37,6 +37,7 @@ from ..closest import (
     point_to_surface,
 )
 from ..errors import FitError, LandmarkError
+from ..landmarks import canonical_label
 
 __all__ = [
     "SurfaceIndex",
@@ -72,13 +73,9 @@ def landmark_dict(landmarks) -> dict[str, np.ndarray]:
             f"expected Landmarks or a mapping label -> (3,) position in mm, got "
             f"{type(landmarks).__name__}."
         )
-    try:
-        from ..landmarks import canonical_label
-    except ImportError:  # pragma: no cover - landmarks.py not present yet
-        canonical_label = None
     out: dict[str, np.ndarray] = {}
     for name, pos in items:
-        key = canonical_label(name) if canonical_label is not None else None
+        key = canonical_label(name)
         out[key or str(name)] = np.asarray(pos, dtype=np.float64).reshape(3)
     return out
 
