@@ -49,8 +49,8 @@ def main() -> None:
     jax.config.update("jax_enable_x64", True)
     from jaxface.anatomy.jaw import JawPose
     from jaxface.anatomy.rig import build_rig, synthesize
-    from jaxface.fit.pipeline import SubjectOptions, fit_expressions, subject_from_rig
     from jaxface.fit.options import FitOptions
+    from jaxface.fit.pipeline import SubjectOptions, fit_expressions, subject_from_rig
     from jaxface.head import generic_head
     from jaxface.io.scanner import SkinLandmarks, scan_skin
 

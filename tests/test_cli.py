@@ -169,8 +169,8 @@ def test_fit_command_defaults_are_the_librarys():
     """``jaxface fit`` spells its defaults out for ``--help`` (the CLI imports the library
     lazily); they must stay those of FitOptions and SubjectOptions."""
     from jaxface.commands import fit
-    from jaxface.fit.pipeline import SubjectOptions
     from jaxface.fit.options import FitOptions
+    from jaxface.fit.pipeline import SubjectOptions
 
     app = typer.Typer()
     fit.register(app)

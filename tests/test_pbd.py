@@ -111,8 +111,8 @@ def _check_hinge_inert_then_active(x, y, rest, active_angle):
     reverse pass finite and equal to that of the identity, d sum(x^2) / dx = 2 x); at ``y``
     it is active (|C| > ``active_angle`` rad) with a finite reverse pass."""
     S = pbd.build_system({"b": pbd.bending_constraints([[0, 1, 2, 3]], rest=[rest])}, 4)
-    c = lambda p: float(
-        pbd.bending_constraints([[0, 1, 2, 3]], rest=[rest]).terms(  # noqa: E731
+    c = lambda p: float(  # noqa: E731
+        pbd.bending_constraints([[0, 1, 2, 3]], rest=[rest]).terms(
             [jnp.asarray(p[k][:, None]) for k in range(4)]
         )[0][0]
     )

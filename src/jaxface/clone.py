@@ -53,11 +53,14 @@ import time
 from collections.abc import Mapping, Sequence
 
 import numpy as np
-from scipy.spatial import cKDTree
+from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]
 
 from . import contours as _contours
 from .errors import LandmarkError, MeshError
-from .rbf import Morph, fit_numpy
+from .landmarks import Landmarks
+from .mesh import TriMesh
+from .normals import vertex_normals
+from .rbf import KernelName, Morph, fit_numpy
 
 __all__ = [
     "SurfaceMap",
@@ -95,8 +98,6 @@ ENS0_DEFINITIONS: tuple[tuple[tuple[str, ...], str], ...] = (
 def as_trimesh(mesh, name: str = "mesh"):
     """A :class:`jaxface.mesh.TriMesh` from a TriMesh, a ``trimesh.Trimesh`` or a
     ``(vertices (V, 3) mm, triangles (F, 3))`` pair (not re-validated)."""
-    from .mesh import TriMesh
-
     if isinstance(mesh, TriMesh):
         return mesh
     if hasattr(mesh, "vertices") and hasattr(mesh, "faces"):
@@ -111,8 +112,6 @@ def as_trimesh(mesh, name: str = "mesh"):
 
 
 def _as_landmarks(lm, name: str):
-    from .landmarks import Landmarks
-
     if isinstance(lm, Landmarks):
         return lm
     if isinstance(lm, Mapping):
@@ -121,19 +120,6 @@ def _as_landmarks(lm, name: str):
         f"{name} must be a jaxface.landmarks.Landmarks or a dict name -> (3,) position in mm; "
         f"got {type(lm).__name__}."
     )
-
-
-def _vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals (zero rows for isolated vertices)."""
-    c = np.cross(
-        vertices[triangles[:, 1]] - vertices[triangles[:, 0]],
-        vertices[triangles[:, 2]] - vertices[triangles[:, 0]],
-    )
-    acc = np.zeros_like(vertices)
-    for k in range(3):
-        np.add.at(acc, triangles[:, k], c)
-    n = np.linalg.norm(acc, axis=1, keepdims=True)
-    return np.divide(acc, n, out=np.zeros_like(acc), where=n > 0)
 
 
 def eye_nose_separation(landmarks) -> float:
@@ -197,8 +183,6 @@ def cast_segments(
         ``(hit (R,) bool, tri (R,) int64, bary (R, 3), t (R,) signed distance along d in mm)``;
         rays that missed have ``tri = -1``, ``bary = 0``, ``t = inf``.
     """
-    from .mesh import TriMesh
-
     if mesh is None:
         if vertices is None or triangles is None:
             raise MeshError(
@@ -290,8 +274,6 @@ def map_onto_surface(points, normals, length: float, vertices, triangles) -> Sur
     Returns:
         :class:`SurfaceMap`.
     """
-    from .mesh import TriMesh
-
     p = np.asarray(points, dtype=np.float64)
     surface = TriMesh(np.asarray(vertices, dtype=np.float64), np.asarray(triangles), validate=False)
     hit, tri, bary, t = cast_segments(p, normals, length, mesh=surface)
@@ -360,7 +342,7 @@ def fit_source_to_target(
     target_landmarks,
     *,
     movable=None,
-    kernel: str = "multiquadric",
+    kernel: KernelName = "multiquadric",
     reg: float = 0.0,
     contour_spec=None,
     use_contours: bool = True,
@@ -457,7 +439,7 @@ def fit_source_to_target(
 
     def errors(G):
         D = G.apply_np(S0)
-        n = _vertex_normals(D, src.triangles)
+        n = vertex_normals(D, src.triangles)
         cand = np.flatnonzero(mov & ~near_lm)
         hit, tri, bary, t = cast_segments(D[cand], n[cand], L, mesh=tgt)
         err = np.abs(t[hit])
@@ -714,7 +696,7 @@ def apply_clone(
     out = tv[None] + np.einsum("vk,tvkd->tvd", mapping.bary, disp[:, tri_v])
     if mode == "thesis":
         snapped = np.einsum("vk,vkd->vd", mapping.bary, D[tri_v])
-        touched = moving[:, tri_v].any(axis=2)  # (T, Vt)
+        touched = np.asarray(moving[:, tri_v].any(axis=2))  # (T, Vt)
         out = np.where(touched[..., None], out - tv[None] + snapped[None], out)
     elif mode != "displacement":
         raise MeshError(
@@ -773,7 +755,7 @@ def clone_motion(
         src, tgt, source_landmarks, target_landmarks, movable=moving.any(axis=0), **fit_kwargs
     )
     t1 = time.perf_counter()
-    tn = _vertex_normals(tgt.vertices, tgt.triangles)
+    tn = vertex_normals(tgt.vertices, tgt.triangles)
     mapping = map_onto_surface(tgt.vertices, tn, fit.ray_length, fit.deformed, src.triangles)
     targets = apply_clone(fit, mapping, src.triangles, tgt.vertices, deltas, moving, mode, transfer)
     t2 = time.perf_counter()

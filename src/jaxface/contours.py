@@ -35,6 +35,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from .errors import LandmarkError, MeshError
+from .landmarks import Landmarks
 
 __all__ = [
     "BOSPHORUS_CONTOURS",
@@ -275,7 +276,7 @@ def loop_arcs(mesh, loop: np.ndarray, a: int, b: int) -> tuple[np.ndarray, np.nd
 # feature extraction
 # ------------------------------------------------------------------------------------------
 def _snap(mesh, points: np.ndarray) -> np.ndarray:
-    from scipy.spatial import cKDTree
+    from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]
 
     return (
         cKDTree(mesh.vertices)
@@ -287,8 +288,8 @@ def _snap(mesh, points: np.ndarray) -> np.ndarray:
 def extract_contour(
     mesh,
     name: str,
-    upper: Sequence[int],
-    lower: Sequence[int],
+    upper: Sequence[int] | np.ndarray,
+    lower: Sequence[int] | np.ndarray,
     *,
     loop_tol: float = 0.25,
     use_loops: bool = True,
@@ -373,8 +374,6 @@ def extract_contours(
     Returns:
         ``{feature: Contour}`` (features with missing landmarks are left out).
     """
-    from .landmarks import Landmarks
-
     lm = landmarks if isinstance(landmarks, Landmarks) else Landmarks.from_dict(landmarks)
     spec = BOSPHORUS_CONTOURS if spec is None else spec
     out: dict[str, Contour] = {}

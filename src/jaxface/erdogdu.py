@@ -71,10 +71,14 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial import cKDTree
+from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]
 
 from .errors import LandmarkError, RBFError, RigError, ScanFormatError
+from .io.bosphorus import Scan
+from .io.preprocess import RigidTransform, align_landmarks, align_points
 from .landmarks import FACE_LABELS, MIRROR_PAIRS, STABLE_LABELS, Landmarks
+from .mesh import TriMesh
+from .rbf import fit_numpy
 
 __all__ = [
     "ControlPoint",
@@ -446,8 +450,6 @@ class Face:
     def mesh(self):
         m = self.__dict__.get("_mesh")
         if m is None and self.triangles is not None:
-            from .mesh import TriMesh
-
             m = TriMesh(self.vertices, self.triangles, validate=False)
             object.__setattr__(self, "_mesh", m)
         return m
@@ -462,9 +464,6 @@ def as_face(obj, landmarks: Landmarks | None = None, name: str | None = None) ->
         LandmarkError: no landmarks given or found.
         ScanFormatError: vertices not (V, 3) finite.
     """
-    from .io.bosphorus import Scan
-    from .mesh import TriMesh
-
     if isinstance(obj, Face):
         return obj if landmarks is None else Face(obj.vertices, obj.triangles, landmarks, obj.name)
     if isinstance(obj, tuple) and len(obj) == 2 and isinstance(obj[1], Landmarks):
@@ -593,6 +592,7 @@ def _snap(face: Face, points: np.ndarray, mode: str) -> np.ndarray:
     if mode != "surface":
         raise RigError(f"unknown snap mode {mode!r}; use 'vertex' or 'surface'")
     mesh = face.mesh()
+    assert mesh is not None  # the face has triangles here
     sp, _ = mesh.closest_points(points)
     tri = np.asarray(sp.tri, dtype=np.int64)
     bary = np.asarray(sp.bary, dtype=np.float64)
@@ -604,8 +604,6 @@ def _landmark_tps(
 ):
     """TPS on the landmarks common to both (matched by label), plus optional ``still`` (n, 3)
     mm points mapped to themselves."""
-    from .rbf import fit_numpy
-
     common = [n for n in src.names if n in dst]
     if len(common) < 5:
         raise LandmarkError(
@@ -725,14 +723,13 @@ class Animation:
 
     def mesh(self):
         """The animated target as a :class:`jaxface.mesh.TriMesh` (needs triangles)."""
-        from .mesh import TriMesh
-
         if self.triangles is None:
             raise RigError("the target was given as bare vertices; no mesh to return")
         return TriMesh(self.vertices, self.triangles, validate=False)
 
     def at_magnitude(self, m: float) -> np.ndarray:
         """(V, 3) animated vertices at another magnitude ``m`` (the warp is linear in ``m``)."""
+        assert self._unit_field is not None  # animate() sets it
         return self.neutral + float(m) * self._unit_field
 
 
@@ -832,9 +829,6 @@ def animate(
         RigError: unsupported AU or option.
         LandmarkError: landmarks needed by the layout, the face frame or the alignment missing.
     """
-    from .io.preprocess import RigidTransform, align_landmarks, align_points
-    from .rbf import fit_numpy
-
     num, side = parse_au(au)
     layout = AU_LAYOUTS[num]
     sn = as_face(source_neutral, name="source neutral")
@@ -862,6 +856,7 @@ def animate(
     if align:
         if se.triangles is not None and sn.triangles is not None:
             mesh_n = sn.mesh()
+            assert mesh_n is not None  # sn has triangles here
             rej = np.zeros(len(sn.vertices), bool)
             rej[np.asarray(mesh_n.boundary_edges, dtype=np.int64).ravel()] = True
             T_align, _, icp_info, more = align_points(
@@ -995,8 +990,6 @@ def resample_grid(scan, size: int = 150):
     """
     import matplotlib.tri as mtri
 
-    from .io.bosphorus import Scan
-
     pts = np.asarray(scan.points, dtype=np.float64)
     if size < 2:
         raise ScanFormatError(f"resample size must be at least 2, got {size}")
@@ -1049,6 +1042,7 @@ def fit_magnitude(
     if not sel.any():
         return 0.0, 0.0
     tree = cKDTree(np.asarray(target_points, dtype=np.float64))
+    assert animation._unit_field is not None  # animate() sets it
     x0, u = animation.neutral[sel], animation._unit_field[sel]
 
     def cost(mm):

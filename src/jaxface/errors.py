@@ -9,6 +9,8 @@ generic handlers keep working.
 
 from __future__ import annotations
 
+from typing import Any
+
 
 class JaxfaceError(Exception):
     """Base class of every error jaxface raises on bad input."""
@@ -21,7 +23,11 @@ class MeshError(JaxfaceError, ValueError):
     Attributes:
         problem: short machine-readable tag, e.g. ``"non_manifold_edges"``.
         elements: indices of the offending vertices/triangles/edges (may be empty).
+        edges: ``(k, 2)`` offending vertex pairs; set only for edge problems (non-manifold
+            edges, inconsistent orientation).
     """
+
+    edges: Any
 
     def __init__(self, message: str, *, problem: str = "invalid_mesh", elements=()):
         super().__init__(message)

@@ -26,6 +26,7 @@ import re
 
 import numpy as np
 
+from .anatomy.jaw import JawPose
 from .errors import RigError
 
 __all__ = [
@@ -196,8 +197,6 @@ def aus_to_controls(aus: dict, muscle_names):
         ``(activations (M,) in [0, 1], JawPose, cheek_puff)``; contributions add up and are
         clipped to [0, 1] (jaw: to its limits by the jaw model).
     """
-    from .anatomy.jaw import JawPose
-
     names = list(muscle_names)
     a = np.zeros(len(names))
     jaw = np.zeros(3)
@@ -233,6 +232,7 @@ def sort_aus(values: dict) -> dict:
 
     def key(k):
         m = _AU_RE.match(k)
+        assert m is not None, k  # the keys are AU names
         return (int(m.group(1)), m.group(2) or "")
 
     return dict(sorted(values.items(), key=lambda kv: key(kv[0])))

@@ -47,8 +47,9 @@ import functools
 import numpy as np
 from scipy.interpolate import make_smoothing_spline
 
-from .landmarks import BOSPHORUS_LABELS, Landmarks
-from .mesh import TriMesh
+from .landmarks import BOSPHORUS_LABELS, Landmarks, write_lm3
+from .mesh import TriMesh, save_mesh
+from .render import head_layers, save_views
 
 __all__ = ["Head", "generic_head", "build_head", "save_head", "RAY_ORIGIN", "EYE_RADIUS"]
 
@@ -902,6 +903,7 @@ def _slit_warp(s: _Slit, theta, dphi, side):
     the slit ring, on ``side`` (+1 above / upper edge, -1 below / lower edge)."""
     span = s.theta_b - s.theta_a
     k = s.theta_knots
+    assert k is not None and s.bend is not None and s.a_up is not None and s.a_lo is not None
     inside = (theta >= k[0]) & (theta <= k[-1])
     bend_in = np.interp(theta, k, s.bend)
     # outside the slit the bend fades out over half a slit length
@@ -1550,9 +1552,6 @@ def save_head(
     """
     from pathlib import Path
 
-    from .landmarks import write_lm3
-    from .mesh import save_mesh
-
     out = Path(directory)
     out.mkdir(parents=True, exist_ok=True)
     files = {}
@@ -1573,8 +1572,6 @@ def save_head(
         files[name] = out / f"{name}.ply"
         save_mesh(files[name], mesh, units=units)
     if picture:
-        from .render import head_layers, save_views
-
         files["picture"] = save_views(
             out / f"{stem}.png",
             head_layers(head),

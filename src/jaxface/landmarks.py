@@ -20,6 +20,7 @@ import os
 import re
 from collections.abc import Iterable, Mapping
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 
@@ -347,7 +348,7 @@ class Landmarks:
                 f"that needs fewer landmarks.",
                 missing=miss,
             )
-        idx = [self._find(n) for n in names]
+        idx = [cast(int, self._find(n)) for n in names]  # all present: checked above
         return Landmarks([self.names[i] for i in idx], self.positions[idx])
 
     def subset(self, names: Iterable[str]) -> Landmarks:

@@ -43,18 +43,18 @@ import os
 import re
 from functools import cached_property
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import dijkstra
 
 from .errors import DataNotFoundError, MeshError, UnitsError
+from .normals import vertex_normals
+from .surface import SurfacePoints
 
 if TYPE_CHECKING:  # pragma: no cover
     import trimesh
-
-    from .surface import SurfacePoints
 
 __all__ = [
     "TriMesh",
@@ -618,7 +618,7 @@ class TriMesh:
             shape=(nv, nv),
         ).tocsr()
         g.sort_indices()
-        return g
+        return cast(sp.csr_matrix, g)
 
     @cached_property
     def _edge_graph(self) -> sp.csr_matrix:
@@ -653,16 +653,8 @@ class TriMesh:
     @cached_property
     def vertex_normals(self) -> np.ndarray:
         """``(V, 3)`` area-weighted unit vertex normals; zero rows for unreferenced vertices.
-        Same definition as :func:`jaxface.surface.vertex_normals`."""
-        c = self._cross()
-        t = self._triangles
-        nv = self.n_vertices
-        acc = np.zeros((nv, 3))
-        for k in range(3):
-            for d in range(3):
-                acc[:, d] += np.bincount(t[:, k], weights=c[:, d], minlength=nv)
-        n = np.linalg.norm(acc, axis=1, keepdims=True)
-        return _readonly(np.divide(acc, n, out=np.zeros_like(acc), where=n > 0))
+        Same definition as :func:`jaxface.surface.vertex_normals` (:func:`jaxface.normals.vertex_normals`)."""
+        return _readonly(vertex_normals(self._vertices, self._triangles))
 
     @property
     def bounds(self) -> np.ndarray:
@@ -809,8 +801,6 @@ class TriMesh:
         """
         import trimesh
 
-        from .surface import SurfacePoints
-
         p = np.asarray(points, dtype=np.float64)
         if p.ndim != 2 or p.shape[1] != 3:
             raise MeshError(f"points must be (K, 3) in mm, got shape {p.shape}.", problem="shape")
@@ -876,8 +866,6 @@ class TriMesh:
         Returns:
             :class:`RayHits` (compact: one row per hit, ``ray_index`` maps back to the rays).
         """
-        from .surface import SurfacePoints
-
         o = np.asarray(origins, dtype=np.float64)
         d = np.asarray(directions, dtype=np.float64)
         if o.ndim == 1:
@@ -1306,7 +1294,8 @@ def save_mesh(
         units: unit to write: "mm", "cm" or "m".
         encoding: PLY only, "binary" or "ascii".
     """
-    import trimesh
+    import trimesh.exchange.obj
+    import trimesh.exchange.ply
 
     path = Path(os.fspath(path))
     scale = unit_scale(units)

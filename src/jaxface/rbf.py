@@ -49,9 +49,11 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.core import Tracer
 
 from ._parallel import thread_map
 from .errors import RBFError
+from .mesh import TriMesh
 
 __all__ = [
     "KERNELS",
@@ -154,15 +156,17 @@ class Morph(eqx.Module):
         radii2: ``(n,)`` squared stiffness radii in the normalised frame (multiquadric;
             zeros otherwise).
         kernel: kernel name (static).
+
+    Arrays are JAX from :func:`fit`, NumPy from :func:`fit_numpy`.
     """
 
-    centres: jax.Array
-    targets: jax.Array
-    weights: jax.Array
-    affine: jax.Array
-    shift: jax.Array
-    scale: jax.Array
-    radii2: jax.Array
+    centres: jax.Array | np.ndarray
+    targets: jax.Array | np.ndarray
+    weights: jax.Array | np.ndarray
+    affine: jax.Array | np.ndarray
+    shift: jax.Array | np.ndarray
+    scale: jax.Array | np.ndarray
+    radii2: jax.Array | np.ndarray
     kernel: str = eqx.field(static=True)
 
     @property
@@ -276,7 +280,7 @@ def _evaluate(morph: Morph, points, chunk: int):
 # validation (concrete inputs only)
 # --------------------------------------------------------------------------------------
 def _is_concrete(*xs) -> bool:
-    return not any(isinstance(x, jax.core.Tracer) for x in xs)
+    return not any(isinstance(x, Tracer) for x in xs)
 
 
 def find_duplicates(src, rtol: float = _DUPLICATE_RTOL) -> list[np.ndarray]:
@@ -290,7 +294,7 @@ def find_duplicates(src, rtol: float = _DUPLICATE_RTOL) -> list[np.ndarray]:
     Returns:
         a list of index arrays (ascending), one per group of two or more coincident centres.
     """
-    from scipy.spatial import cKDTree
+    from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]
 
     p = np.asarray(src, dtype=np.float64)
     if p.shape[0] < 2:
@@ -606,7 +610,5 @@ def warp_points(morph: Morph, points) -> np.ndarray:
 def warp_mesh(morph: Morph, mesh):
     """Return a new :class:`jaxface.mesh.TriMesh` whose vertices are ``morph(mesh.vertices)``
     (mm) with the same triangles. Accepts a ``TriMesh`` or a ``trimesh.Trimesh``."""
-    from .mesh import TriMesh
-
     tris = mesh.triangles if hasattr(mesh, "triangles") else mesh.faces
     return TriMesh(morph.apply_np(np.asarray(mesh.vertices)), np.asarray(tris), validate=False)

@@ -37,6 +37,8 @@ from typing import Any
 
 import numpy as np
 
+from .normals import vertex_normals as _vertex_normals
+
 __all__ = [
     "VIEWS",
     "SKIN",
@@ -79,15 +81,8 @@ def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
         vertices: ``(V, 3)`` positions, mm.
         triangles: ``(F, 3)`` vertex ids, counter-clockwise from outside.
     """
-    v = np.asarray(vertices, dtype=np.float64)
-    t = np.asarray(triangles, dtype=np.int64)
-    fn = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])  # 2 * area * unit normal
-    n = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(n, t[:, k], fn)
-    length = np.linalg.norm(n, axis=1, keepdims=True)
-    out = np.where(length > 1e-300, n / np.maximum(length, 1e-300), np.array([0.0, 0.0, 1.0]))
-    return out
+    n = _vertex_normals(vertices, triangles)
+    return np.where(np.any(n != 0.0, axis=1, keepdims=True), n, np.array([0.0, 0.0, 1.0]))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -327,7 +322,7 @@ def _light_dir(right, up, toward) -> np.ndarray:
 
 def rasterize(
     meshes,
-    view="front",
+    view: str | tuple[float, float] = "front",
     width: int = 512,
     height: int = 512,
     *,
@@ -513,7 +508,7 @@ def _landmark_arrays(landmarks) -> tuple[list[str], np.ndarray]:
 def draw(
     ax,
     meshes,
-    view="front",
+    view: str | tuple[float, float] = "front",
     *,
     width: int = 512,
     height: int = 512,
@@ -665,6 +660,8 @@ def figure_views(
         ``matplotlib.figure.Figure``.
     """
     import matplotlib
+    import matplotlib.cm
+    import matplotlib.colors
     from matplotlib.figure import Figure
 
     layers = as_layers(meshes)
@@ -720,7 +717,7 @@ def figure_views(
         sm = matplotlib.cm.ScalarMappable(
             norm=matplotlib.colors.Normalize(lo, hi), cmap=matplotlib.colormaps[sl.cmap]
         )
-        cax = fig.add_axes([1.0 - 0.75 / fig.get_figwidth(), 0.12, 0.18 / fig.get_figwidth(), 0.72])
+        cax = fig.add_axes((1.0 - 0.75 / fig.get_figwidth(), 0.12, 0.18 / fig.get_figwidth(), 0.72))
         cbar = fig.colorbar(sm, cax=cax)
         cbar.set_label(colorbar_label)
     if title:

@@ -24,6 +24,21 @@ from pathlib import Path
 
 import numpy as np
 
+from .anatomy.jaw import JawPose
+from .anatomy.pictures import (
+    emotion_pictures,
+    expression_sheet,
+    jaw_diagram,
+    muscle_map_picture,
+)
+from .anatomy.rig import build_rig, synthesize
+from .fit.options import FitOptions
+from .fit.pipeline import SubjectOptions, fit_expressions, subject_from_rig
+from .head import generic_head, save_head
+from .io.bosphorus import write_bnt
+from .io.scanner import SkinLandmarks, scan_skin
+from .landmarks import write_lm3
+
 __all__ = ["SYNTHETIC_SCANS", "run_showcase"]
 
 #: synthetic expression scans the demo makes and fits back: name -> (activations, jaw pose)
@@ -62,15 +77,6 @@ def run_showcase(
         progress: called with a short text before each step.
     """
     import jax
-
-    from .anatomy.pictures import (
-        emotion_pictures,
-        expression_sheet,
-        jaw_diagram,
-        muscle_map_picture,
-    )
-    from .anatomy.rig import build_rig
-    from .head import generic_head, save_head
 
     say = progress or (lambda s: None)
     out = Path(out)
@@ -138,14 +144,6 @@ def run_showcase(
 
 
 def _scan_and_fit(rig, head, out: Path, say, timings) -> list[dict]:
-    from .anatomy.jaw import JawPose
-    from .anatomy.rig import synthesize
-    from .fit.pipeline import SubjectOptions, fit_expressions, subject_from_rig
-    from .fit.options import FitOptions
-    from .io.bosphorus import write_bnt
-    from .io.scanner import SkinLandmarks, scan_skin
-    from .landmarks import write_lm3
-
     scans_dir = out / "scans"
     fits_dir = out / "fits"
     scans_dir.mkdir(exist_ok=True)
@@ -154,6 +152,7 @@ def _scan_and_fit(rig, head, out: Path, say, timings) -> list[dict]:
     def scan_of(x, stem):
         s = scan_skin(x, bound, path=f"{stem}.bnt")
         write_bnt(scans_dir / f"{stem}.bnt", s)
+        assert s.landmarks is not None  # scan_skin carries the landmarks
         write_lm3(scans_dir / f"{stem}.lm3", s.landmarks)
         return s
 

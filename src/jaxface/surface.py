@@ -23,6 +23,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.core import Tracer
 
 from ._arrays import to_jax
 from .errors import MeshError
@@ -129,11 +130,11 @@ class SurfacePoints(eqx.Module):
         """
         # concrete input is converted in NumPy (to_jax): jnp.asarray and astype compile a
         # small program for every new K (about 25 ms each on a CPU)
-        if isinstance(tri, jax.core.Tracer):
+        if isinstance(tri, Tracer):
             tri = tri.astype(jnp.int32)
         else:
             tri = to_jax(np.asarray(tri).astype(np.int32, copy=False))
-        if isinstance(bary, jax.core.Tracer):
+        if isinstance(bary, Tracer):
             if not jnp.issubdtype(bary.dtype, jnp.floating):
                 bary = bary.astype(jnp.result_type(float))
         else:

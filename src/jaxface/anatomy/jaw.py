@@ -25,12 +25,16 @@ Units: degrees for angles, mm for lengths.
 
 from __future__ import annotations
 
+from typing import Any
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike
 
 from .._arrays import to_jax
+from ..rigid import rotation_matrix
 from .frame import FaceFrame, face_frame
 
 __all__ = [
@@ -68,17 +72,6 @@ def smooth_clamp(x, lo: float, hi: float, softness: float):
     return jnp.where(x < 0.5 * (lo + hi), low, high)
 
 
-def rotation_matrix(axis, angle_rad):
-    """Rodrigues rotation matrix (thesis eq. 5.2) about a unit ``axis (3,)`` by ``angle_rad``
-    (radians, right-hand rule). Returns ``(3, 3)``."""
-    axis = jnp.asarray(axis)
-    c = jnp.cos(angle_rad)
-    s = jnp.sin(angle_rad)
-    x, y, z = axis[0], axis[1], axis[2]
-    K = jnp.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]], dtype=axis.dtype)
-    return c * jnp.eye(3, dtype=axis.dtype) + s * K + (1.0 - c) * jnp.outer(axis, axis)
-
-
 class JawPose(eqx.Module):
     """The jaw state, a tiny JAX pytree.
 
@@ -95,7 +88,9 @@ class JawPose(eqx.Module):
     yaw_deg: jax.Array
     protrusion_mm: jax.Array
 
-    def __init__(self, pitch_deg=0.0, yaw_deg=0.0, protrusion_mm=0.0):
+    def __init__(
+        self, pitch_deg: ArrayLike = 0.0, yaw_deg: ArrayLike = 0.0, protrusion_mm: ArrayLike = 0.0
+    ):
         dt = jnp.result_type(pitch_deg, yaw_deg, protrusion_mm, float)
         self.pitch_deg = jnp.asarray(pitch_deg, dtype=dt)
         self.yaw_deg = jnp.asarray(yaw_deg, dtype=dt)
@@ -133,9 +128,9 @@ class JawModel(eqx.Module):
     pitch_axis: jax.Array
     yaw_axis: jax.Array
     protrusion_dir: jax.Array
-    pitch_limits: tuple = eqx.field(static=True, default=PITCH_LIMITS_DEG)
-    yaw_limits: tuple = eqx.field(static=True, default=YAW_LIMITS_DEG)
-    protrusion_limits: tuple = eqx.field(static=True, default=PROTRUSION_LIMITS_MM)
+    pitch_limits: tuple[float, float] = eqx.field(static=True, default=PITCH_LIMITS_DEG)
+    yaw_limits: tuple[float, float] = eqx.field(static=True, default=YAW_LIMITS_DEG)
+    protrusion_limits: tuple[float, float] = eqx.field(static=True, default=PROTRUSION_LIMITS_MM)
     softness_deg: float = eqx.field(static=True, default=0.25)
     softness_mm: float = eqx.field(static=True, default=0.1)
 
@@ -161,13 +156,10 @@ class JawModel(eqx.Module):
         yaw = yaw / np.linalg.norm(yaw)
         prot = frame.landmark("Chin middle") - frame.spine_top
         prot = prot / np.linalg.norm(prot)
-        return JawModel(
-            to_jax(pivot),
-            to_jax(pitch),
-            to_jax(yaw),
-            to_jax(prot),
-            **{k: tuple(v) if isinstance(v, (list, tuple)) else v for k, v in limits.items()},
-        )
+        kw: dict[str, Any] = {
+            k: tuple(v) if isinstance(v, (list, tuple)) else v for k, v in limits.items()
+        }
+        return JawModel(to_jax(pivot), to_jax(pitch), to_jax(yaw), to_jax(prot), **kw)
 
     @property
     def limits(self) -> dict:

@@ -26,6 +26,7 @@ import json
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 
@@ -229,9 +230,11 @@ def load_muscle_map(path=None) -> list[MuscleSpec]:
                 centre=_mirror_point(d.get("centre")) if mirror else d.get("centre"),
                 inner=tuple(d["inner"]) if "inner" in d else None,
                 outer=tuple(d["outer"]) if "outer" in d else None,
-                width=tuple(float(x) for x in d.get("width", (8.0, 8.0))),
+                width=cast(
+                    tuple[float, float], tuple(float(x) for x in d.get("width", (8.0, 8.0)))
+                ),
                 thickness=float(d.get("thickness", 3.0)),
-                grid=grid,
+                grid=cast(tuple[int, int], grid),
                 n_around=int(d.get("n_around", 16)),
                 max_contraction=mc,
                 angles_deg=dict(d["angles_deg"]) if "angles_deg" in d else None,
@@ -562,6 +565,7 @@ def _build_mesh(pm: PlacedMuscle, grid: MuscleGrid, bottom: np.ndarray, normals:
 
 def _place_fibred(P: _Placer, spec: MuscleSpec, support: list[int], tscale: float) -> PlacedMuscle:
     fr = P.frame
+    assert spec.origin is not None and spec.insertion is not None  # checked by load_muscle_map
     o_guess = _resolve(fr, spec.origin)
     i_guess = _resolve(fr, spec.insertion)
     (o_s, i_s), (o_n, i_n) = P.to_skin(np.stack([o_guess, i_guess]))
@@ -619,6 +623,7 @@ def _place_sphincter(
     P: _Placer, spec: MuscleSpec, support: list[int], tscale: float
 ) -> PlacedMuscle:
     fr = P.frame
+    assert spec.centre is not None  # checked by load_muscle_map
     c_guess = _resolve(fr, spec.centre)
     n = spec.n_around
     (ai, bi), (ao, bo) = (
@@ -748,6 +753,7 @@ def place_muscles(skin: TriMesh, landmarks, skull: Skull, specs=None) -> list[Pl
                 pm = _place_sphincter(P, spec, support, skull.thickness_scale)
             else:
                 pm = _place_fibred(P, spec, support, skull.thickness_scale)
+            assert pm.mesh is not None  # both placements build the muscle's mesh
             pm.surface_id = P.registry.add(spec.name, pm.mesh)
         placed[spec.name] = pm
         out.append(pm)
@@ -760,6 +766,11 @@ def placement_registry(skull: Skull, placed: list[PlacedMuscle]) -> SurfaceRegis
     reg.add("cranium", skull.cranium)
     reg.add("mandible", skull.mandible)
     for pm in sorted([p for p in placed if p.surface_id >= 0], key=lambda p: p.surface_id):
+        if pm.mesh is None:
+            raise RigError(
+                f"placed muscle {pm.spec.name!r} has a surface id but no mesh; place the "
+                "muscles with place_muscles."
+            )
         k = reg.add(pm.spec.name, pm.mesh)
         if k != pm.surface_id:
             raise RigError(

@@ -57,6 +57,7 @@ import numpy as np
 from .. import pbd
 from .._arrays import to_jax
 from ..errors import RigError
+from ..mesh import TriMesh
 from .muscle_map import PlacedMuscle, check_sphincter_rings
 
 __all__ = [
@@ -376,17 +377,18 @@ def build_muscle_system(
         ``(PendingMuscles, SupportPoints)``: add the skin's skull points to the collector,
         then call ``PendingMuscles.finalize()``.
     """
-    from ..mesh import TriMesh
-
     meshes = registry.meshes
     with_mesh = [p for p in placed if p.mesh is not None]
     offsets = [0]
     muscle_offset = {}
+    rests: list[np.ndarray] = []
     for p in with_mesh:
+        assert p.rest_vertices is not None  # placement sets it together with the mesh
+        rests.append(p.rest_vertices)
         muscle_offset[p.surface_id] = offsets[-1]
         offsets.append(offsets[-1] + p.rest_vertices.shape[0])
     n = offsets[-1]
-    rest = np.concatenate([p.rest_vertices for p in with_mesh]) if with_mesh else np.zeros((0, 3))
+    rest = np.concatenate(rests) if with_mesh else np.zeros((0, 3))
     sp = SupportPoints([], [], muscle_offset)
     dist, bend, vol = [], [], []
     dist_key = []
@@ -396,6 +398,7 @@ def build_muscle_system(
     for mi, p in enumerate(with_mesh):
         off = offsets[mi]
         g = p.grid
+        assert g is not None  # placement sets it together with the mesh
         kk = STIFFNESS[p.kind]
         ctrl = control_index.get(p.name, -1) if p.spec.active else -1
         cmax = p.spec.max_contraction
@@ -758,7 +761,7 @@ def _modiolus(mod_fib, fib, sph, rest, h_max: int) -> dict:
     ends = np.zeros((2, 3))
     ok = np.zeros(2, bool)
     for s_ in (0, 1):
-        for k, (fi, w, pid) in enumerate(mod_fib[s_]):
+        for k, (fi, w, _pid) in enumerate(mod_fib[s_]):
             end[s_, k] = fi * h_max + fib[fi][4] - 1
             last[s_, k] = fi
             fw[s_, k] = w

@@ -13,6 +13,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import facs
+from ..errors import RigError
+from ..render import Layer, draw, head_layers, rasterize, save_figure
+from .jaw import JawPose
 from .rig import Rig, synthesize
 
 __all__ = [
@@ -28,8 +31,6 @@ EMOTION_ORDER = ("happiness", "sadness", "surprise", "fear", "anger", "disgust")
 
 def _layers(rig: Rig, x, jaw, head):
     """The skin ``x`` alone, or with ``head``'s eyes and teeth (lower teeth moved with the jaw)."""
-    from ..render import Layer, head_layers
-
     if head is None:
         return [Layer(np.asarray(x), np.asarray(rig.triangles))]
     R, t = rig.jaw.transform(jaw)
@@ -75,11 +76,8 @@ def expression_sheet(
     lo = face.to_world([-85.0, -125.0, -120.0])
     hi = face.to_world([85.0, 75.0, 60.0])
     bounds = np.stack([np.minimum(lo, hi), np.maximum(lo, hi)])
-    from ..render import rasterize
 
     if head is not None and head.mesh.n_vertices != rest.shape[0]:
-        from ..errors import RigError
-
         raise RigError(
             f"head has {head.mesh.n_vertices} skin vertices, the rig {rest.shape[0]}: "
             "pass the head the rig was built on, or head=None."
@@ -104,7 +102,6 @@ def expression_sheet(
     if title:
         fig.suptitle(title)
     fig.tight_layout()
-    from ..render import save_figure
 
     return save_figure(fig, path, dpi=100, close=True)
 
@@ -180,8 +177,6 @@ def muscle_map_picture(path, rig: Rig, *, px: int = 460) -> Path:
     import matplotlib.pyplot as plt
     from matplotlib.patches import Patch
 
-    from ..render import Layer, draw
-
     info = rig.info
     skull = info.skull
     colors = _muscle_colors(info.placed)
@@ -246,7 +241,6 @@ def muscle_map_picture(path, rig: Rig, *, px: int = 460) -> Path:
     handles = [Patch(color=c, label=b.replace("_", " ")) for b, c in colors.items()]
     fig.legend(handles=handles, loc="center right", fontsize=7, frameon=False)
     fig.tight_layout(rect=(0, 0, 0.83, 1))
-    from ..render import save_figure
 
     return save_figure(fig, path, dpi=100, close=True)
 
@@ -270,9 +264,6 @@ def jaw_diagram(path, rig: Rig, pose=None, *, px: int = 460) -> Path:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from ..render import Layer, draw
-    from .jaw import JawPose
 
     pose = JawPose(12.0, 3.0, 2.0) if pose is None else pose
     jm = rig.jaw
@@ -317,6 +308,5 @@ def jaw_diagram(path, rig: Rig, pose=None, *, px: int = 460) -> Path:
         fontsize=8,
     )
     fig.tight_layout()
-    from ..render import save_figure
 
     return save_figure(fig, path, dpi=100, close=True)

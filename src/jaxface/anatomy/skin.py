@@ -41,6 +41,7 @@ Units: mm.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import cast
 
 import equinox as eqx
 import jax
@@ -53,8 +54,10 @@ from .. import pbd
 from .._arrays import to_jax
 from ..errors import RigError
 from ..mesh import TriMesh
+from ..rigid import rotate_about_axes
 from .frame import FaceFrame
 from .geometry import segment_cast, smooth_normals
+from .skull import head_centre
 
 __all__ = [
     "SKIN_STIFFNESS",
@@ -230,13 +233,14 @@ def _edge_matrix(skin: TriMesh, values: np.ndarray) -> sp.csr_matrix:
     """Symmetric ``(V, V)`` sparse matrix with ``values`` (one per edge) on the mesh edges."""
     e = skin.edges
     V = skin.n_vertices
-    return sp.coo_matrix(
+    g = sp.coo_matrix(
         (
             np.concatenate([values, values]),
             (np.concatenate([e[:, 0], e[:, 1]]), np.concatenate([e[:, 1], e[:, 0]])),
         ),
         shape=(V, V),
     ).tocsr()
+    return cast(sp.csr_matrix, g)
 
 
 def membrane_interpolation(skin: TriMesh, free: np.ndarray):
@@ -311,7 +315,7 @@ def footprint_matrix(skin: TriMesh, sigma, *, chunk: int = 512) -> sp.csr_matrix
 def mirror_vertices(skin: TriMesh, frame: FaceFrame, tol_mm: float = 1e-6) -> np.ndarray | None:
     """``(V,)`` each vertex's mirror image across the face's mid-sagittal plane, when the
     skin is a mirror image of itself to ``tol_mm`` (mm); None otherwise (scans, the ICT face)."""
-    from scipy.spatial import cKDTree
+    from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]
 
     R = frame.to_local(skin.vertices)
     d, m = cKDTree(R).query(R * np.array([-1.0, 1.0, 1.0]))
@@ -445,7 +449,7 @@ def footprint_operator(
             F.row.astype(np.int64), F.col.astype(np.int64), F.data, none, none, np.zeros(0), 0
         )
     P = footprint_clusters(skin, cluster_mm, mirror)
-    C = P.shape[1]
+    C = cast(tuple[int, int], P.shape)[1]
     count = np.asarray(P.sum(axis=0)).ravel()
     narrow, wide_ids = np.flatnonzero(~wide), np.flatnonzero(wide)
     Fn = F[narrow].tocoo()
@@ -778,7 +782,6 @@ def build_skin_system(
                 name="skin bending",
             )
         )
-    from .skull import head_centre
 
     vol = None
     if k["volume"] > 0:
@@ -871,16 +874,6 @@ def build_skin_system(
     )
 
 
-def _rotate(p, pivot, axis, ang):
-    """Rodrigues rotation of points ``p (K, 3)`` about per-point axes through pivots."""
-    c = jnp.cos(ang)[:, None]
-    s = jnp.sin(ang)[:, None]
-    v = p - pivot
-    kxv = jnp.cross(axis, v)
-    kdv = jnp.sum(axis * v, axis=1, keepdims=True)
-    return pivot + v * c + kxv * s + axis * kdv * (1.0 - c)
-
-
 def skin_targets(sk: SkinSystem, G, activations, cheek_puff=0.0):
     """Anchor targets ``(V, 3)`` mm of the skin for the current support ``G``.
 
@@ -918,7 +911,7 @@ def skin_targets(sk: SkinSystem, G, activations, cheek_puff=0.0):
             sk.lid_upper, ang[sk.lid_side, 0], ang[sk.lid_side, 1]
         ) * sk.lid_fall.astype(dt)
         p0 = rest[sk.lid_ids]
-        rot = _rotate(
+        rot = rotate_about_axes(
             p0, sk.lid_pivot.astype(dt)[sk.lid_side], sk.lid_axis.astype(dt)[sk.lid_side], per
         )
         disp = disp.at[sk.lid_ids].add(rot - p0)

@@ -25,9 +25,9 @@ import numpy as np
 from matplotlib.path import Path as MplPath
 
 from ..errors import DataNotFoundError, MeshError, RigError
-from ..mesh import TriMesh, load_mesh
-from ..rbf import fit_numpy
-from .frame import FaceFrame, face_frame
+from ..mesh import TriMesh, load_mesh, unit_scale
+from ..rbf import KernelName, fit_numpy
+from .frame import REQUIRED_LABELS, FaceFrame, face_frame
 from .geometry import radial_project, smooth_field, smooth_normals
 
 __all__ = [
@@ -324,12 +324,10 @@ def estimate_skull(
 # ------------------------------------------------------------------------------ loading
 def _as_mesh(m, units: str, what: str, rotation=None) -> TriMesh:
     if m is None:
-        return None
+        raise RigError(f"load_skull needs a {what} mesh (a TriMesh or an OBJ/PLY path); got None.")
     if isinstance(m, TriMesh):
         mesh = m
         if units != "mm":
-            from ..mesh import unit_scale
-
             mesh = mesh.with_vertices(mesh.vertices * unit_scale(units))
     else:
         p = Path(m)
@@ -370,8 +368,12 @@ def load_skull(
     return Skull(
         cranium=cranium_mesh,
         mandible=_as_mesh(mandible, units, "mandible", rotation),
-        upper_teeth=_as_mesh(upper_teeth, units, "upper teeth", rotation),
-        lower_teeth=_as_mesh(lower_teeth, units, "lower teeth", rotation),
+        upper_teeth=(
+            None if upper_teeth is None else _as_mesh(upper_teeth, units, "upper teeth", rotation)
+        ),
+        lower_teeth=(
+            None if lower_teeth is None else _as_mesh(lower_teeth, units, "lower teeth", rotation)
+        ),
         source="user",
     )
 
@@ -465,7 +467,7 @@ def fit_skull(
     skin: TriMesh,
     landmarks,
     *,
-    kernel: str = "multiquadric",
+    kernel: KernelName = "multiquadric",
     enrich: bool = True,
 ) -> Skull:
     """Fit a template skull into another skin with a landmark RBF (thesis sec. 5.4).
@@ -486,8 +488,6 @@ def fit_skull(
     Returns:
         the fitted :class:`Skull` (``source="fitted"``).
     """
-    from .frame import REQUIRED_LABELS
-
     fs, ft = face_frame(template_landmarks), face_frame(landmarks)
     src = [fs.points[n] for n in REQUIRED_LABELS]
     dst = [ft.points[n] for n in REQUIRED_LABELS]
@@ -500,9 +500,7 @@ def fit_skull(
     dst = np.concatenate([dst, ft.condyles, ft.skull_top[None]])
     morph = fit_numpy(src, dst, kernel=kernel, reg=1e-4, merge_duplicates=True)
 
-    def warp(m):
-        if m is None:
-            return None
+    def warp(m: TriMesh) -> TriMesh:
         return m.with_vertices(morph.apply_np(m.vertices))
 
     try:
@@ -513,8 +511,8 @@ def fit_skull(
     return Skull(
         cranium=warp(skull.cranium),
         mandible=warp(skull.mandible),
-        upper_teeth=warp(skull.upper_teeth),
-        lower_teeth=warp(skull.lower_teeth),
+        upper_teeth=None if skull.upper_teeth is None else warp(skull.upper_teeth),
+        lower_teeth=None if skull.lower_teeth is None else warp(skull.lower_teeth),
         source="fitted",
         thickness_scale=float(diag / diag_t) * skull.thickness_scale,
         extras={"morph": morph},

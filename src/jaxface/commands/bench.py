@@ -24,7 +24,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import List
+from typing import List  # noqa: UP035 (typer options keep List[str], see UP006 below)
 
 import typer
 
@@ -253,7 +253,7 @@ def register(app: typer.Typer) -> None:
             ("mode", "left"),
             ("result / error", "left"),
         ):
-            table.add_column(col, justify=just)
+            table.add_column(col, justify="right" if just == "right" else "left")
         for r in runs:
             mode = "quick" if r["quick"] else ("full (no --quick)" if quick else "full")
             if r["status"] == "ok":

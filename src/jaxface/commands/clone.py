@@ -21,7 +21,7 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
-from typing import List
+from typing import List  # noqa: UP035 (typer options keep List[str], see UP006 below)
 
 import numpy as np
 import typer
@@ -384,7 +384,7 @@ def register(app: typer.Typer) -> None:
             ("moving vertices", "right"),
             ("file", "left"),
         ):
-            table.add_column(col, justify=just)
+            table.add_column(col, justify="right" if just == "right" else "left")
         scale = unit_scale(out_units.value)
         for s in stats:
             table.add_row(

@@ -90,8 +90,8 @@ def convert_file(
             units (mesh -> ``.bnt``; default the mesh's x/y extent).
         max_angle_deg, noise_mm, seed: virtual-scanner options (see
             :func:`jaxface.io.scanner.scan_mesh`; ``noise_mm`` in mm).
-        landmarks: ``.lm3`` path (input units), ``None`` = the ``.lm3`` beside the input if
-            any, ``False`` = none.
+        landmarks: ``.lm3`` path (input units), ``None`` (or ``True``) = the ``.lm3`` beside
+            the input if any, ``False`` = none.
         max_edge_factor: long-edge threshold (grid steps) for ``.bnt`` -> mesh.
         check_size: check that the input is face-sized in mm after unit conversion.
 
@@ -123,7 +123,7 @@ def convert_file(
     }
 
     lm_path = None
-    if landmarks is None:
+    if landmarks is None or landmarks is True:
         lm_path = _lm3_beside(src)
     elif landmarks is not False:
         lm_path = Path(landmarks)
@@ -141,6 +141,7 @@ def convert_file(
     dst.parent.mkdir(parents=True, exist_ok=True)
     if k_in == "bnt":
         scan = read_bnt(src, units=in_units, check_size=check_size)
+        assert scan.shape is not None  # a .bnt is a grid scan
         info["grid"] = list(scan.shape)
         info["points"] = scan.n_points
         if k_out == "mesh":
@@ -169,6 +170,7 @@ def convert_file(
                 image_name=dst.stem + ".png",
             )
             write_bnt(dst, dataclasses.replace(scan, points=scan.points / s_out))
+            assert scan.shape is not None  # scan_mesh makes a grid scan
             info.update(grid=list(scan.shape), points=scan.n_points, resolution_mm=res)
     if resolution is not None and not (k_in == "mesh" and k_out == "bnt"):
         info["notes"].append("--resolution is only used when scanning a mesh into a .bnt grid")
@@ -177,6 +179,7 @@ def convert_file(
         info["files"].append(f"{lm_out} (kept: the input's landmarks, same units)")
         info["landmarks"] = len(lm)
     elif lm is not None:
+        assert lm_path is not None  # lm was read from it
         write_lm3(
             lm_out,
             lm.transformed(scale=1.0 / s_out),

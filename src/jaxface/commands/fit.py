@@ -24,7 +24,7 @@ import time
 import warnings
 from enum import Enum
 from pathlib import Path
-from typing import List
+from typing import List  # noqa: UP035 (typer options keep List[str], see UP006 below)
 
 import typer
 
@@ -100,8 +100,8 @@ def run_fit(
             are written.
     """
     from ..errors import FitError, LandmarkError
-    from ..fit.pipeline import SubjectOptions, _stem, fit_expressions, prepare_subject
     from ..fit.options import FitOptions
+    from ..fit.pipeline import SubjectOptions, _stem, fit_expressions, prepare_subject
 
     if backend not in ("pbd", "ltw"):
         raise FitError(f"--backend {backend!r}: use 'pbd' or 'ltw'.")
@@ -292,8 +292,8 @@ def register(app: typer.Typer) -> None:
         # reduced model and sub-0.1 mm residuals need it (the library follows the dtype)
         jax.config.update("jax_enable_x64", True)
 
-        from ..fit.pipeline import SubjectOptions
         from ..fit.options import FitOptions
+        from ..fit.pipeline import SubjectOptions
 
         opts = FitOptions(
             n_points=points,

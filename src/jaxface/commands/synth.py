@@ -23,7 +23,7 @@ import json
 import re
 import time
 from pathlib import Path
-from typing import List
+from typing import Any, List  # noqa: UP035 (typer options keep List[str], see UP006 below)
 
 import numpy as np
 import typer
@@ -322,7 +322,7 @@ def register(app: typer.Typer) -> None:
           jaxface synth --compare-backends --out compare
         """
         from ..anatomy.jaw import JawPose
-        from ..anatomy.rig import build_rig
+        from ..anatomy.rig import Rig, build_rig
         from ..errors import RigError
         from ..facs import EMOTIONS, aus_to_controls, emotion_controls, parse_aus
 
@@ -360,7 +360,7 @@ def register(app: typer.Typer) -> None:
                 from ..head import generic_head
 
                 face = generic_head()
-                rig_args = (face,)
+                rig_args: tuple[Any, ...] = (face,)
             else:
                 from .clone import load_face
 
@@ -369,6 +369,7 @@ def register(app: typer.Typer) -> None:
             step(f"building the {backend} rig (skull, jaw, muscles)")
             rig = build_rig(*rig_args, backend=backend)
             if n_sweeps is not None:
+                assert isinstance(rig, Rig)  # --sweeps is refused above for the ltw backend
                 rig = rig.with_iterations(
                     muscles=n_sweeps[0], skin=n_sweeps[1], skin_rho=n_sweeps[2]
                 )
@@ -414,11 +415,13 @@ def register(app: typer.Typer) -> None:
                 )
             if compare_backends:
                 from ..ltw.pictures import compare_emotions
+                from ..ltw.rig import LTWRig
 
                 other = "ltw" if backend == "pbd" else "pbd"
                 step(f"building the {other} rig on the same face")
                 rig2 = build_rig(*rig_args, backend=other)
                 pbd_rig, ltw_rig = (rig, rig2) if backend == "pbd" else (rig2, rig)
+                assert isinstance(ltw_rig, LTWRig)
                 step("synthesising the six emotions with both backends")
                 out.mkdir(parents=True, exist_ok=True)
                 cmp_path = compare_emotions(

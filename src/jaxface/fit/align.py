@@ -51,8 +51,8 @@ from typing import Any, Literal
 import numpy as np
 
 from ..errors import FitError, LandmarkError
-from ..io.preprocess import RigidTransform, procrustes
 from ..landmarks import STABLE_LABELS
+from ..rigid import RigidTransform, procrustes, rotation_from_euler, rotvec_matrix
 from .metrics import DistanceStats, SurfaceIndex, landmark_dict, mesh_arrays
 
 __all__ = [
@@ -98,15 +98,6 @@ def umeyama(src, dst, weights=None, *, scale: bool = False) -> RigidTransform:
         FitError: fewer than 3 weighted pairs, or collinear points.
     """
     return procrustes(src, dst, weights, scale=scale)
-
-
-def rotation_from_euler(pitch_deg: float = 0.0, yaw_deg: float = 0.0) -> np.ndarray:
-    """``Rx(pitch) @ Ry(yaw)`` ``(3, 3)``: the rotation convention of ``truth.json`` in the
-    shared Bosphorus-style data (angles in degrees about +x and +y)."""
-    a, b = np.radians(pitch_deg), np.radians(yaw_deg)
-    rx = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
-    ry = np.array([[np.cos(b), 0, np.sin(b)], [0, 1, 0], [-np.sin(b), 0, np.cos(b)]])
-    return rx @ ry
 
 
 # --------------------------------------------------------------------------------------
@@ -199,7 +190,7 @@ def estimate_noise(index: SurfaceIndex, *, n_samples: int = 2000, k: int = 9) ->
     RMS residual of a least-squares plane through each vertex's ``k`` nearest vertices
     (corrected for the 3 fitted parameters). On a smooth face sampled at 1 mm the curvature
     adds about 0.02 mm; the Bosphorus-style bs901 scans (0.1 mm noise) give about 0.09."""
-    from scipy.spatial import cKDTree
+    from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]
 
     key = (int(n_samples), int(k))
     cache = index.__dict__.setdefault("_noise_estimates", {})
@@ -222,13 +213,6 @@ def estimate_noise(index: SurfaceIndex, *, n_samples: int = 2000, k: int = 9) ->
 # --------------------------------------------------------------------------------------
 # robust point-to-plane ICP
 # --------------------------------------------------------------------------------------
-def _rotvec(w: np.ndarray) -> np.ndarray:
-    """``(3, 3)`` rotation matrix of a rotation vector (radians)."""
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_rotvec(np.asarray(w, dtype=np.float64)).as_matrix()
-
-
 def _robust_weights(r: np.ndarray, c: float, loss: str) -> np.ndarray:
     u = np.abs(r) / c
     if loss == "tukey":
@@ -371,7 +355,7 @@ def robust_icp(
             # scale about the centroid of the matched points, then rotate/translate
             S = RigidTransform(np.eye(3), (1.0 - s) * centre, s)
             T = S.compose(T)
-        step = RigidTransform(_rotvec(x[:3]), x[3:6])
+        step = RigidTransform(rotvec_matrix(x[:3]), x[3:6])
         T = step.compose(T)
         last = (int(idx.size), n_in, DistanceStats.from_distances(r[w > 0]), c)
         annealing = anneal is not None and it <= half

@@ -34,8 +34,12 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from ..errors import LandmarkError
-from ..io.preprocess import RigidTransform
+from ..erdogdu import SUPPORTED_AUS, animate, fit_magnitude
+from ..errors import FitError, LandmarkError
+from ..io.bosphorus import parse_scan_name
+from ..mesh import TriMesh
+from ..rbf import KernelName, fit_numpy
+from ..rigid import RigidTransform
 from .metrics import landmark_dict, mesh_arrays
 
 __all__ = [
@@ -67,8 +71,6 @@ def baseline_b0(registration, alignment=None):
     Returns:
         :class:`jaxface.mesh.TriMesh`, mm, expression scan frame.
     """
-    from ..mesh import TriMesh
-
     mesh = getattr(registration, "mesh", registration)
     v, f = mesh_arrays(mesh)
     return TriMesh(_transform_of(alignment).inverse().apply(v), f, validate=False)
@@ -93,7 +95,7 @@ def baseline_b1(
     *,
     neutral_landmarks=None,
     labels: Sequence[str] | None = None,
-    kernel: str = "tps",
+    kernel: KernelName = "tps",
     reg: float = 0.0,
 ):
     """B1: landmark-only TPS warp of the registered neutral (see the module doc).
@@ -114,9 +116,6 @@ def baseline_b1(
     Raises:
         LandmarkError: fewer than 5 common landmarks.
     """
-    from ..mesh import TriMesh
-    from ..rbf import fit_numpy
-
     T = _transform_of(alignment)
     nl = neutral_landmarks if neutral_landmarks is not None else registration.scan_landmarks
     disp = expression_landmark_displacements(nl, expression_landmarks, T, labels)
@@ -145,9 +144,6 @@ def b2_action_unit(scan) -> str | None:
     Arguments:
         scan: a :class:`jaxface.io.Scan`, a path or a stem such as ``"bs000_LFAU_12L_0"``.
     """
-    from ..erdogdu import SUPPORTED_AUS
-    from ..io.bosphorus import parse_scan_name
-
     name = getattr(scan, "path", None) or getattr(scan, "stem", None) or scan
     info = parse_scan_name(str(name))
     if info is None or info.kind not in ("LFAU", "UFAU") or len(info.aus) != 1:
@@ -209,10 +205,6 @@ def baseline_b2(
         RigError (unsupported AU), LandmarkError (landmarks missing): from
         :func:`jaxface.erdogdu.animate`; FitError: an expression scan without points.
     """
-    from ..erdogdu import animate, fit_magnitude
-    from ..errors import FitError
-    from ..mesh import TriMesh
-
     T = _transform_of(alignment)
     pts = None
     if magnitude is None:
@@ -235,6 +227,7 @@ def baseline_b2(
             mask = mask & np.asarray(fm, bool)
         m, _ = fit_magnitude(anim, T.apply(pts), mask=mask, bounds=bounds, cap_mm=cap_mm)
     else:
+        assert magnitude is not None  # pts is None only for a given magnitude
         m = float(magnitude)
     return BaselineB2(
         TriMesh(T.inverse().apply(anim.at_magnitude(m)), f, validate=False), float(m), anim

@@ -42,8 +42,11 @@ from typing import Any
 import numpy as np
 
 from ..errors import DataNotFoundError, FitError
-from ..io.preprocess import RigidTransform
-from .align import rotation_from_euler
+from ..io import load_scan
+from ..landmarks import Landmarks
+from ..mesh import TriMesh, load_mesh
+from ..rigid import RigidTransform, rotation_from_euler
+from ..testing import shared_path
 from .metrics import DistanceStats, FacePlane, SurfaceIndex, mesh_arrays
 
 __all__ = [
@@ -134,8 +137,6 @@ class TruthSet:
         """The ``.truth.ply`` as a :class:`jaxface.mesh.TriMesh` (scan frame, mm), cached."""
         key = ("truth", stem)
         if key not in self._cache:
-            from ..mesh import load_mesh
-
             self._cache[key] = load_mesh(self.path(stem, ".truth.ply"), validate=False)
         return self._cache[key]
 
@@ -144,8 +145,6 @@ class TruthSet:
         key = ("scan", stem)
         if key not in self._cache:
             import warnings
-
-            from ..io import load_scan
 
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
@@ -188,8 +187,6 @@ def load_truth(root=None) -> TruthSet:
         DataNotFoundError: no ``truth.json`` in ``root``.
     """
     if root is None:
-        from ..testing import shared_path
-
         root = shared_path("data", "bosphorus_style")
     root = Path(root)
     f = root / "truth.json"
@@ -359,12 +356,7 @@ def ict_template(
         truth: the truth set (for the landmark vertex ids); default :func:`load_truth`.
         groups: ICT triangle groups forming the skin.
     """
-    from ..landmarks import Landmarks
-    from ..mesh import TriMesh
-
     if npz_path is None:
-        from ..testing import shared_path
-
         npz_path = shared_path("data", "ict", "ict_face.npz")
     truth = load_truth() if truth is None else truth
     d = np.load(npz_path)

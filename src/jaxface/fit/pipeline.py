@@ -35,10 +35,28 @@ from typing import Any
 
 import numpy as np
 
+from .._parallel import thread_map
+from ..anatomy.jaw import JawPose
+from ..anatomy.rig import build_rig
 from ..errors import FitError, LandmarkError
+from ..facs import au_intensities
+from ..head import generic_head
+from ..io import load_scan
+from ..io.scanner import SkinLandmarks
+from ..landmarks import Landmarks
+from ..mesh import TriMesh, save_mesh
+from ..rbf import fit_numpy
+from ..render import Layer, draw, save_figure
+from ..surface import SurfacePoints
+from .align import align_scans
+from .au_motion import au_skin_motion, au_sparse, motion_gram
+from .baselines import baseline_b0, baseline_b1
 from .forward import ForwardModel
+from .metrics import SurfaceIndex, fit_metrics, landmark_dict
 from .options import FitOptions
+from .params import rigid_numpy
 from .reduced import ResponseModel, build_response_model
+from .register import Registration, Template, register_template
 from .solve import PointFit, fit_points
 
 __all__ = [
@@ -141,8 +159,6 @@ class Subject:
 
     def landmarks_on(self, vertices) -> Any:
         """The rig's landmarks on a skin with the rig's topology (Landmarks, mm)."""
-        from ..io.scanner import SkinLandmarks
-
         bound = SkinLandmarks(
             self.landmark_names, self.landmark_tri, self.landmark_bary, self.triangles
         )
@@ -153,10 +169,6 @@ def _warp_teeth(template, registration, radius_mm: float = 60.0):
     """The template's teeth carried onto the registered neutral (mm): a thin-plate spline
     through up to 400 template vertices within ``radius_mm`` of the mouth landmarks and their
     registered positions. ``(None, None)`` when the template has no teeth."""
-    from ..mesh import TriMesh
-    from ..rbf import fit_numpy
-    from .metrics import landmark_dict
-
     if (
         getattr(template, "upper_teeth", None) is None
         or getattr(template, "lower_teeth", None) is None
@@ -232,16 +244,10 @@ def prepare_subject(
         LandmarkError: the neutral has no landmarks; FitError / RigError: registration or
             rig building failed (named in the message).
     """
-    from ..anatomy.rig import build_rig
-    from .metrics import SurfaceIndex
-    from .register import register_template
-
     opt = options or SubjectOptions()
     say = progress or (lambda s: None)
     timings: dict[str, float] = {}
     if isinstance(neutral, (str, Path)):
-        from ..io import load_scan
-
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             neutral = load_scan(neutral, landmarks=neutral_landmarks)
@@ -254,8 +260,6 @@ def prepare_subject(
             "(--neutral-landmarks) or put it beside the scan."
         )
     if template is None:
-        from ..head import generic_head
-
         template = generic_head()
     t = time.perf_counter()
     say("registering the template to the neutral scan")
@@ -286,7 +290,7 @@ def prepare_subject(
             "the rig's skin topology differs from the registered template's; cannot attach "
             "the landmarks and the face mask."
         )
-    face_tri = np.asarray(reg.face_mask, bool)[tris].all(axis=1)
+    face_tri = np.asarray(np.asarray(reg.face_mask, bool)[tris].all(axis=1))
     if not face_tri.any():
         raise FitError("the template's face mask selects no triangle of the skin.")
     lp = reg.landmark_points
@@ -331,12 +335,6 @@ def subject_from_rig(
         face_mask: ``(V,)`` bool face region of the rig skin (default: every vertex).
         options: :class:`SubjectOptions` (reduced-model knots, chunk, controls).
     """
-    from ..landmarks import Landmarks
-    from ..mesh import TriMesh
-    from ..surface import SurfacePoints
-    from .metrics import SurfaceIndex, landmark_dict
-    from .register import Registration, Template
-
     opt = options or SubjectOptions()
     say = progress or (lambda s: None)
     if getattr(neutral, "landmarks", None) is None:
@@ -348,7 +346,7 @@ def subject_from_rig(
     fm = np.ones(V, bool) if face_mask is None else np.asarray(face_mask, bool)
     if fm.shape != (V,):
         raise FitError(f"face_mask must be ({V},) bool over the rig skin, got {fm.shape}.")
-    face_tri = fm[tris].all(axis=1)
+    face_tri = np.asarray(fm[tris].all(axis=1))
     lm = landmark_dict(rig.info.landmarks)
     names = list(lm)
     cp = SurfaceIndex(rest, tris).query(np.stack([lm[n] for n in names]))
@@ -419,8 +417,6 @@ def scan_fit_inputs(
     Returns:
         dict with ``points``, ``normals``, ``valid``, ``landmarks``, ``landmark_valid``.
     """
-    from .metrics import SurfaceIndex, landmark_dict
-
     v, tr, _ = scan.mesh_arrays()
     si = SurfaceIndex(v, tr)
     used = np.zeros(len(v), bool)
@@ -533,8 +529,6 @@ class ExpressionFit:
         return {"pitch_deg": float(j[0]), "yaw_deg": float(j[1]), "protrusion_mm": float(j[2])}
 
     def rigid_dict(self) -> dict:
-        from .params import rigid_numpy
-
         R, t = rigid_numpy(self.fit.rigid, self.fit.centre)
         Tn = self.alignment.transform  # scan -> neutral
         # fitted skin in the scan frame = Tn^-1 (R x + t) for rig coordinates x
@@ -634,8 +628,6 @@ class ExpressionFit:
     def write(self, out_dir, *, pictures: bool = False) -> dict[str, Path]:
         """Write ``<stem>.json``, ``<stem>.fitted.ply`` (and ``<stem>.fit.png``). Returns the
         paths."""
-        from ..mesh import save_mesh
-
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
         files = {}
@@ -656,10 +648,9 @@ class ExpressionFit:
 
         os.environ.setdefault("MPLBACKEND", "Agg")
         import matplotlib
+        import matplotlib.cm
+        import matplotlib.colors
         from matplotlib.figure import Figure
-
-        from ..render import Layer, draw, save_figure
-        from .metrics import SurfaceIndex
 
         v, tr, _ = self.scan.mesh_arrays()
         fv = np.asarray(self.fitted.vertices)
@@ -697,7 +688,7 @@ class ExpressionFit:
         sm = matplotlib.cm.ScalarMappable(
             norm=matplotlib.colors.Normalize(0.0, hi), cmap=matplotlib.colormaps["magma"]
         )
-        cax = fig.add_axes([1.0 - 0.8 / fig.get_figwidth(), 0.12, 0.18 / fig.get_figwidth(), 0.7])
+        cax = fig.add_axes((1.0 - 0.8 / fig.get_figwidth(), 0.12, 0.18 / fig.get_figwidth(), 0.7))
         fig.colorbar(sm, cax=cax).set_label("distance to scan (mm)")
         s = self.metrics.scan_to_fit["all"]
         fig.suptitle(
@@ -773,16 +764,6 @@ def fit_expressions(
     Raises:
         LandmarkError: a scan without landmarks; FitError: the fit failed numerically.
     """
-    from .._parallel import thread_map
-    from ..anatomy.jaw import JawPose
-    from ..facs import au_intensities
-    from ..io import load_scan
-    from ..mesh import TriMesh
-    from .align import align_scans
-    from .au_motion import au_skin_motion, au_sparse, motion_gram
-    from .baselines import baseline_b0, baseline_b1
-    from .metrics import fit_metrics
-
     opt = options or FitOptions()
     say = progress or (lambda s: None)
     loaded = []

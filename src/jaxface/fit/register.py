@@ -53,15 +53,21 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
-from scipy.spatial import cKDTree
+from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]
 
 from ..errors import FitError, LandmarkError
-from .metrics import DistanceStats, SurfaceIndex, landmark_dict, mesh_arrays
+from ..head import generic_head
+from ..landmarks import Landmarks
+from ..mesh import TriMesh
+from ..normals import vertex_normals
+from ..rbf import fit_numpy
+from ..surface import SurfacePoints
+from .metrics import DistanceStats, SurfaceIndex, landmark_dict, landmark_errors, mesh_arrays
 
 __all__ = [
     "RegisterOptions",
@@ -147,8 +153,6 @@ class Template:
 
 def _as_template(template, template_landmarks, face_mask) -> Template:
     if template is None:
-        from ..head import generic_head
-
         template = Template.from_head(generic_head())
     elif not isinstance(template, Template):
         if hasattr(template, "mesh") and hasattr(template, "landmarks"):
@@ -209,7 +213,7 @@ def cotangent_laplacian(
     W.data = np.clip(W.data, clamp[0], clamp[1])
     W.eliminate_zeros()
     d = np.asarray(W.sum(axis=1)).ravel()
-    return (sp.diags(d) - W).tocsr()
+    return cast(sp.csr_matrix, (sp.diags(d) - W).tocsr())
 
 
 # --------------------------------------------------------------------------------------
@@ -267,8 +271,6 @@ class Registration:
 
     def landmark_errors(self) -> dict[str, float]:
         """label -> distance registered landmark to scan landmark, mm."""
-        from .metrics import landmark_errors
-
         return landmark_errors(self.landmarks, self.scan_landmarks)
 
     def to_dict(self) -> dict[str, Any]:
@@ -312,15 +314,6 @@ def _attach(vertices, triangles, points):
     return cp.triangles, cp.bary, cp.distances
 
 
-def _vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
-    cr = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    n = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(n, f[:, k], cr)
-    ln = np.linalg.norm(n, axis=1, keepdims=True)
-    return np.where(ln > 0, n / np.where(ln > 0, ln, 1.0), 0.0)
-
-
 def register_template(
     scan,
     scan_landmarks=None,
@@ -357,11 +350,6 @@ def register_template(
         LandmarkError: fewer than 5 common landmarks, or landmarks missing.
         FitError: no scan correspondence accepted (template and scan do not overlap).
     """
-    from ..landmarks import Landmarks
-    from ..mesh import TriMesh
-    from ..rbf import fit_numpy
-    from ..surface import SurfacePoints
-
     t_start = time.perf_counter()
     opt = options or RegisterOptions()
     tpl = _as_template(template, template_landmarks, face_mask)
@@ -455,7 +443,7 @@ def register_template(
         X = X_ref + D
         tau = float(np.clip(2.0 * ell, opt.min_distance_mm, opt.max_distance_mm))
         cp = index.query(X[data_ids], max_distance=tau, exact=False)
-        nrm = _vertex_normals(X, tf)[data_ids]
+        nrm = vertex_normals(X, tf)[data_ids]
         ok = (
             (cp.distances <= tau)
             & ~cp.on_boundary
@@ -527,7 +515,7 @@ def register_template(
     X = X_ref + D
     # final residuals (exact)
     cp = index.query(X, max_distance=max(opt.data_tolerance_mm, 1e-6) * 4)
-    nrm = _vertex_normals(X, tf)
+    nrm = vertex_normals(X, tf)
     has = (
         (cp.distances <= opt.data_tolerance_mm)
         & ~cp.on_boundary

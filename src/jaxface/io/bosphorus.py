@@ -50,15 +50,12 @@ import warnings
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..errors import DataNotFoundError, LandmarkError, ScanFormatError
+from ..errors import DataNotFoundError, LandmarkError, MeshError, ScanFormatError
 from ..landmarks import FACE_LABELS, MIRROR_PAIRS, Landmarks, canonical_label, read_lm3
-
-if TYPE_CHECKING:  # pragma: no cover
-    from ..mesh import TriMesh
+from ..mesh import TriMesh, check_plausible_size, load_mesh, unit_scale
 
 __all__ = [
     "Scan",
@@ -521,30 +518,33 @@ class Scan:
     @property
     def grid_index(self) -> np.ndarray:
         """(nrows, ncols) int64: index into ``points`` of each pixel, -1 for background."""
-        self._need_grid("grid_index")
-        idx = np.full(self.shape, -1, dtype=np.int64)
-        idx[self.valid] = np.arange(self.n_points)
+        shape, valid = self._need_grid("grid_index")
+        idx = np.full(shape, -1, dtype=np.int64)
+        idx[valid] = np.arange(self.n_points)
         return idx
 
     def xyz_grid(self, fill: float = np.nan) -> np.ndarray:
         """(nrows, ncols, 3) mm, background pixels set to ``fill``."""
-        self._need_grid("xyz_grid")
-        g = np.full(self.shape + (3,), fill, dtype=np.float64)
-        g[self.valid] = self.points
+        shape, valid = self._need_grid("xyz_grid")
+        g = np.full(shape + (3,), fill, dtype=np.float64)
+        g[valid] = self.points
         return g
 
     def grid_spacing(self) -> float:
         """Median distance in mm between horizontally or vertically adjacent valid pixels,
         measured in the image (x, y) plane."""
-        self._need_grid("grid_spacing")
-        return _grid_spacing(self.xyz_grid(), self.valid, self.path or "scan")
+        _, valid = self._need_grid("grid_spacing")
+        return _grid_spacing(self.xyz_grid(), valid, self.path or "scan")
 
-    def _need_grid(self, what: str):
+    def _need_grid(self, what: str) -> tuple[tuple[int, int], np.ndarray]:
+        """``(shape, valid)`` of a range-grid scan; ScanFormatError for a mesh scan."""
         if self.shape is None:
             raise ScanFormatError(
                 f"{self.path or 'scan'}: {what} needs a range-grid scan (.bnt); "
                 f"this is a mesh scan."
             )
+        assert self.valid is not None  # a grid scan always has its valid mask
+        return self.shape, self.valid
 
     # -- meshing -------------------------------------------------------------------------
     def mesh_arrays(
@@ -569,7 +569,7 @@ class Scan:
         else:
             tri = grid_triangles(
                 self.xyz_grid(),
-                self.valid,
+                self._need_grid("mesh_arrays")[1],
                 max_edge_factor=max_edge_factor,
                 spacing=self.grid_spacing(),
             )
@@ -595,8 +595,6 @@ class Scan:
             validate: run :meth:`TriMesh.validate`; default True for grid scans and False for
                 mesh scans (scan meshes may hold degenerate triangles, which are tolerated).
         """
-        from ..mesh import TriMesh
-
         if validate is None:
             validate = self.is_grid
         v, t, _ = self.mesh_arrays(max_edge_factor, drop_unreferenced=self.is_grid)
@@ -728,8 +726,8 @@ def read_bnt(path: str | Path, *, units: str = "mm", check_size: bool = True) ->
             stacklevel=2,
         )
     planes = np.frombuffer(data, dtype="<f8", count=count, offset=off).reshape(5, nrows, ncols)
-    xyz = np.stack(planes[:3], axis=-1).astype(np.float64)
-    uv = np.stack(planes[3:], axis=-1).astype(np.float64)
+    xyz = np.stack(list(planes[:3]), axis=-1).astype(np.float64)
+    uv = np.stack(list(planes[3:]), axis=-1).astype(np.float64)
     valid = np.all(xyz != zmin, axis=2)
     pts = xyz[valid]
     _check_points(pts, valid, path)
@@ -790,15 +788,11 @@ def write_bnt(path: str | Path, scan: Scan, *, image_name: str | None = None) ->
 
 
 def _unit_scale(units: str) -> float:
-    from ..mesh import unit_scale
-
     return unit_scale(units)
 
 
 def _check_extent(pts: np.ndarray, units: str, path, check_size: bool) -> None:
     if check_size:
-        from ..mesh import check_plausible_size
-
         check_plausible_size(pts, units, source=str(path))
 
 
@@ -931,7 +925,7 @@ def load_scan(
         path: scan file; dispatch on the extension.
         landmarks: ``.lm3`` file (mm, same units as the scan); ``None`` = the file beside
             the scan with suffix ``.lm3`` if it exists (for ``x.truth.ply``, ``x.lm3`` is also
-            tried); ``False`` = no landmarks.
+            tried; ``True`` means the same); ``False`` = no landmarks.
         units: unit of the scan and landmark coordinates; converted to mm.
         require: labels that must be present (:class:`LandmarkError` listing all missing).
         warn_missing: warn (:class:`MissingLandmarkWarning`) about Bosphorus face labels
@@ -948,9 +942,6 @@ def load_scan(
     if ext == ".bnt":
         scan = read_bnt(path, units=units, check_size=check_size)
     elif ext in (".obj", ".ply"):
-        from ..errors import MeshError
-        from ..mesh import load_mesh
-
         try:
             # scans are data: degenerate or inconsistently oriented triangles are tolerated
             mesh = load_mesh(path, units=units, check_size=check_size, validate=False)
@@ -975,7 +966,7 @@ def load_scan(
         raise ScanFormatError(f"{path}: unknown scan format {ext!r}; use .bnt, .obj or .ply")
 
     lm_path: Path | None = None
-    if landmarks is None:
+    if landmarks is None or landmarks is True:
         cands = [path.with_suffix(".lm3")]
         if path.name.lower().endswith(".truth.ply"):
             cands.append(path.with_name(path.name[: -len(".truth.ply")] + ".lm3"))
@@ -1050,7 +1041,7 @@ def complete_landmarks(
     offset = float(np.mean([m @ normal for m in mids]))
     tree = None
     if points is not None:
-        from scipy.spatial import cKDTree
+        from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]
 
         tree = cKDTree(np.asarray(points, dtype=np.float64))
     new_names, new_pos, done = list(landmarks.names), [np.asarray(landmarks.positions)], []

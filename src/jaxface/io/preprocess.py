@@ -27,13 +27,15 @@ Choices (facial-anatomy notes; Erdoğdu 2010 notes sec. 7.1):
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
-from scipy.spatial import cKDTree
+from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]
 
 from ..errors import FitError, LandmarkError
 from ..landmarks import STABLE_LABELS, Landmarks
+from ..rigid import RigidTransform, procrustes, rotvec_matrix
 from .bosphorus import Scan, _canon
 
 __all__ = [
@@ -54,109 +56,6 @@ __all__ = [
 #: Expression-stable Bosphorus labels used for landmark alignment (eye corners, nose
 #: saddles, nose tip): :data:`jaxface.landmarks.STABLE_LABELS`.
 STABLE_ALIGNMENT_LABELS: tuple[str, ...] = STABLE_LABELS
-
-
-@dataclass(frozen=True)
-class RigidTransform:
-    """``p -> scale * rotation @ p + translation`` (mm in, mm out).
-
-    Attributes:
-        rotation: (3, 3) proper rotation (det +1).
-        translation: (3,) mm.
-        scale: uniform scale (1 for a rigid transform).
-    """
-
-    rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
-    translation: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    scale: float = 1.0
-
-    def __post_init__(self):
-        object.__setattr__(
-            self, "rotation", np.asarray(self.rotation, dtype=np.float64).reshape(3, 3)
-        )
-        object.__setattr__(
-            self, "translation", np.asarray(self.translation, dtype=np.float64).reshape(3)
-        )
-        object.__setattr__(self, "scale", float(self.scale))
-
-    def apply(self, points: np.ndarray) -> np.ndarray:
-        """(..., 3) mm -> (..., 3) mm."""
-        p = np.asarray(points, dtype=np.float64)
-        return self.scale * p @ self.rotation.T + self.translation
-
-    __call__ = apply
-
-    def apply_vectors(self, vectors: np.ndarray) -> np.ndarray:
-        """Rotate (and scale) direction/displacement vectors (..., 3); no translation."""
-        return self.scale * np.asarray(vectors, dtype=np.float64) @ self.rotation.T
-
-    def inverse(self) -> RigidTransform:
-        Rt = self.rotation.T
-        return RigidTransform(Rt, -(Rt @ self.translation) / self.scale, 1.0 / self.scale)
-
-    def compose(self, first: RigidTransform) -> RigidTransform:
-        """``self ∘ first``: apply ``first``, then ``self``."""
-        return RigidTransform(
-            self.rotation @ first.rotation,
-            self.scale * self.rotation @ first.translation + self.translation,
-            self.scale * first.scale,
-        )
-
-    @property
-    def angle_deg(self) -> float:
-        """Rotation angle in degrees."""
-        c = np.clip((np.trace(self.rotation) - 1.0) / 2.0, -1.0, 1.0)
-        return float(np.degrees(np.arccos(c)))
-
-    def as_dict(self) -> dict:
-        """JSON-friendly: rotation matrix, translation (mm), scale, rotation angle (deg)."""
-        return {
-            "rotation": self.rotation.tolist(),
-            "translation_mm": self.translation.tolist(),
-            "scale": self.scale,
-            "angle_deg": self.angle_deg,
-        }
-
-
-def procrustes(
-    src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None, *, scale: bool = False
-) -> RigidTransform:
-    """Least-squares rigid (or similarity, ``scale=True``) transform mapping ``src`` to ``dst``
-    (Kabsch/Umeyama with reflection guard).
-
-    Args:
-        src, dst: (n, 3) mm, n >= 3 and not collinear.
-        weights: (n,) non-negative.
-
-    Raises:
-        FitError: fewer than 3 points, or (nearly) collinear points.
-    """
-    src = np.asarray(src, dtype=np.float64)
-    dst = np.asarray(dst, dtype=np.float64)
-    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3:
-        raise FitError(
-            f"procrustes needs two (n, 3) arrays of equal shape, got {src.shape} and {dst.shape}"
-        )
-    w = np.ones(len(src)) if weights is None else np.asarray(weights, dtype=np.float64)
-    if int((w > 0).sum()) < 3:
-        raise FitError(
-            f"rigid alignment needs at least 3 weighted point pairs, got {int((w > 0).sum())}"
-        )
-    w = w / w.sum()
-    cs, cd = w @ src, w @ dst
-    a, b = src - cs, dst - cd
-    H = (a * w[:, None]).T @ b
-    U, S, Vt = np.linalg.svd(H)
-    if S[1] < 1e-9 * max(S[0], 1e-300):
-        raise FitError("rigid alignment is undetermined: the points are (nearly) collinear")
-    d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
-    D = np.diag([1.0, 1.0, d])
-    R = Vt.T @ D @ U.T
-    s = 1.0
-    if scale:
-        var = float(w @ np.sum(a * a, axis=1))
-        s = float(np.sum(S * np.diag(D)) / var)
-    return RigidTransform(R, cd - s * R @ cs, s)
 
 
 def align_landmarks(
@@ -246,6 +145,7 @@ def boundary_points(scan: Scan) -> np.ndarray:
     4-neighbour or on the grid border; for meshes, vertices on boundary edges)."""
     if scan.is_grid:
         v = scan.valid
+        assert v is not None  # a grid scan has its valid mask
         pad = np.pad(v, 1, constant_values=False)
         inner = pad[:-2, 1:-1] & pad[2:, 1:-1] & pad[1:-1, :-2] & pad[1:-1, 2:]
         return (v & ~inner)[v]
@@ -255,13 +155,6 @@ def boundary_points(scan: Scan) -> np.ndarray:
     out = np.zeros(scan.n_points, dtype=bool)
     out[uniq[cnt == 1].ravel()] = True
     return out
-
-
-def _rotvec_matrix(w: np.ndarray) -> np.ndarray:
-    """``(3, 3)`` rotation matrix of a rotation vector (radians)."""
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_rotvec(np.asarray(w, dtype=np.float64)).as_matrix()
 
 
 @dataclass(frozen=True)
@@ -337,7 +230,7 @@ def icp(
         A = (J * w[:, None]).T @ J
         b = -(J * w[:, None]).T @ r
         x = np.linalg.solve(A + 1e-9 * np.trace(A) / 6 * np.eye(6), b)
-        step = RigidTransform(_rotvec_matrix(x[:3]), x[3:])
+        step = RigidTransform(rotvec_matrix(x[:3]), x[3:])
         # rotate about the origin of the current frame: p' = R p + t
         T = step.compose(T)
         rms = float(np.sqrt(np.sum(w * r * r) / np.sum(w)))
@@ -387,7 +280,7 @@ def align_points(
     moving_points: np.ndarray,
     moving_landmarks: Landmarks,
     fixed_points: np.ndarray,
-    fixed_normals: np.ndarray,
+    fixed_normals: np.ndarray | None,
     fixed_landmarks: Landmarks,
     *,
     fixed_reject: np.ndarray | None = None,
@@ -403,7 +296,8 @@ def align_points(
     Args:
         moving_points: (M, 3) mm, surface samples of the moving face.
         moving_landmarks, fixed_landmarks: landmarks of the two faces (mm).
-        fixed_points: (K, 3) mm; fixed_normals: (K, 3) unit normals there.
+        fixed_points: (K, 3) mm; fixed_normals: (K, 3) unit normals there (needed for ICP;
+            may be None with ``use_icp=False``).
         fixed_reject: (K,) bool, fixed points never matched (surface border).
         region: ``"auto"`` (stable region, then annealed whole face), ``"stable"``,
             ``"all"`` or an (M,) bool mask of moving points to use.
@@ -418,6 +312,8 @@ def align_points(
         notes.append(f"stable landmarks not used (absent): {', '.join(missing)}")
     if not use_icp:
         return T, used, None, notes
+    if fixed_normals is None:
+        raise FitError("align_points: ICP needs fixed_normals; give them or use_icp=False.")
     pts = np.asarray(moving_points, dtype=np.float64)
     if isinstance(region, str) and region == "stable":
         mask = stable_region(pts, moving_landmarks)
@@ -436,7 +332,9 @@ def align_points(
     try:
         pre = RigidTransform(np.eye(3), np.zeros(3), T.scale)  # ICP stays rigid
         rigid0 = RigidTransform(T.rotation, T.translation, 1.0)
-        kw = dict(fixed_reject=fixed_reject, iterations=icp_iterations, max_distance=max_distance)
+        kw: dict[str, Any] = dict(
+            fixed_reject=fixed_reject, iterations=icp_iterations, max_distance=max_distance
+        )
         if isinstance(region, str) and region == "auto":
             st = stable_region(pts, moving_landmarks)[mask][::step]
             if st.sum() >= 50:

@@ -30,15 +30,14 @@ carries morph targets or simulated expressions over to the scan's pixels.
 from __future__ import annotations
 
 import dataclasses
-from typing import TYPE_CHECKING
+from typing import Literal, overload
 
 import numpy as np
 
+from ..closest import SurfaceIndex
 from ..errors import MeshError, ScanFormatError
-
-if TYPE_CHECKING:  # pragma: no cover
-    from ..landmarks import Landmarks
-    from .bosphorus import Scan
+from ..landmarks import Landmarks
+from .bosphorus import Scan
 
 __all__ = [
     "DEFAULT_RESOLUTION_MM",
@@ -287,6 +286,40 @@ def cast_grid(vertices, triangles, xs, ys, *, chunk: int = 2_000_000) -> GridHit
     )
 
 
+@overload
+def scan_mesh(
+    mesh,
+    resolution: float = ...,
+    *,
+    bounds=...,
+    landmarks: Landmarks | None = ...,
+    max_angle_deg: float | None = ...,
+    noise_mm: float = ...,
+    seed: int | None = ...,
+    image_name: str = ...,
+    path=...,
+    zmin: float = ...,
+    return_hits: Literal[False] = ...,
+) -> Scan: ...
+
+
+@overload
+def scan_mesh(
+    mesh,
+    resolution: float = ...,
+    *,
+    bounds=...,
+    landmarks: Landmarks | None = ...,
+    max_angle_deg: float | None = ...,
+    noise_mm: float = ...,
+    seed: int | None = ...,
+    image_name: str = ...,
+    path=...,
+    zmin: float = ...,
+    return_hits: Literal[True],
+) -> tuple[Scan, GridHits]: ...
+
+
 def scan_mesh(
     mesh,
     resolution: float = DEFAULT_RESOLUTION_MM,
@@ -300,7 +333,7 @@ def scan_mesh(
     path=None,
     zmin: float = -1.0e9,
     return_hits: bool = False,
-):
+) -> Scan | tuple[Scan, GridHits]:
     """Scan a mesh into a Bosphorus-style range grid (virtual scanner looking along ``-z``).
 
     Args:
@@ -330,8 +363,6 @@ def scan_mesh(
         ScanFormatError: non-positive resolution or noise, a grid larger than
             :data:`MAX_GRID_PIXELS` or 65535 per side, or no ray hitting the mesh.
     """
-    from .bosphorus import Scan
-
     V, T = _as_arrays(mesh)
     res = float(resolution)
     if not (np.isfinite(res) and res > 0):
@@ -424,8 +455,6 @@ class SkinLandmarks:
     @classmethod
     def bind(cls, rest, triangles, landmarks: Landmarks) -> SkinLandmarks:
         """Bind ``landmarks`` (mm) to the rest skin ``(V, 3)`` mm with ``(F, 3)`` triangles."""
-        from ..fit.metrics import SurfaceIndex
-
         tris = np.asarray(triangles)
         cp = SurfaceIndex(np.asarray(rest, dtype=np.float64), tris).query(
             np.asarray(landmarks.positions)
@@ -444,8 +473,6 @@ class SkinLandmarks:
 
     def landmarks(self, vertices) -> Landmarks:
         """The same as a :class:`jaxface.landmarks.Landmarks`."""
-        from ..landmarks import Landmarks
-
         return Landmarks(list(self.names), self.positions(vertices))
 
 

@@ -35,11 +35,14 @@ differentiable (grad and jvp) with respect to activations, the jaw transform and
 from __future__ import annotations
 
 import math
+from typing import cast
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
 
 from ..errors import RigError
 from .forces import (
@@ -93,6 +96,15 @@ class LTWState(eqx.Module):
 
 def _eye_zero(dtype):
     return jnp.eye(3, dtype=dtype), jnp.zeros(3, dtype=dtype)
+
+
+def _jaw_or_rest(R, t, dtype) -> tuple[jax.Array, jax.Array]:
+    """The jaw motion ``(R (3, 3), t (3,) mm)``; the identity when both are None."""
+    if R is None and t is None:
+        return _eye_zero(dtype)
+    if R is None or t is None:
+        raise RigError("give the jaw motion as both R (3, 3) and t (3,) mm, or neither.")
+    return R, t
 
 
 def total_forces(model: LTWModel, x, activations, R, t, skull=None, external=None):
@@ -168,8 +180,7 @@ def rest_state(model: LTWModel, R=None, t=None, *, smooth: bool = True) -> LTWSt
     """Initial state: rest positions moved with the jaw (smooth blend on free nodes, rigid on
     the skull), zero velocity."""
     tis = model.tissue
-    if R is None:
-        R, t = _eye_zero(tis.rest.dtype)
+    R, t = _jaw_or_rest(R, t, tis.rest.dtype)
     kin = kinematic_positions(tis, R, t)
     x0 = kinematic_positions(tis, R, t, smooth=smooth) if smooth else kin
     free = tis.free[:, None]
@@ -208,8 +219,7 @@ def simulate(
         The final :class:`LTWState` (``x (N, 3)`` mm, ``v (N, 3)`` mm/time).
     """
     tis, prm = model.tissue, model.params
-    if R is None:
-        R, t = _eye_zero(tis.rest.dtype)
+    R, t = _jaw_or_rest(R, t, tis.rest.dtype)
     if state is None:
         state = rest_state(model, R, t, smooth=False)
     skull = skull_frame(tis, R, t)
@@ -263,8 +273,7 @@ def relax(
         ``(N, 3)`` node positions, mm.
     """
     tis, prm = model.tissue, model.params
-    if R is None:
-        R, t = _eye_zero(tis.rest.dtype)
+    R, t = _jaw_or_rest(R, t, tis.rest.dtype)
     kin = kinematic_positions(tis, R, t) if kinematic is None else kinematic
     free = tis.free[:, None]
     if x0 is None:
@@ -288,8 +297,7 @@ def residual(model: LTWModel, x, activations, R=None, t=None, external=None) -> 
     """Equilibrium residual per node, ``(N,)`` mm: ``|B_i^-1 f_i|`` (the block-Jacobi
     displacement that would cancel the net force; 0 on kinematic nodes)."""
     tis = model.tissue
-    if R is None:
-        R, t = _eye_zero(tis.rest.dtype)
+    R, t = _jaw_or_rest(R, t, tis.rest.dtype)
     f = total_forces(model, x, jnp.asarray(activations), R, t, external=external)
     B = preconditioner(tis, model.params, x)
     return jnp.linalg.norm(jnp.linalg.solve(B, f[..., None])[..., 0], axis=-1)
@@ -298,10 +306,9 @@ def residual(model: LTWModel, x, activations, R=None, t=None, external=None) -> 
 # ----------------------------------------------------------------------------- build time
 
 
-def _rest_stiffness(tissue: LTWTissue, params: LTWParams):
+def _rest_stiffness(tissue: LTWTissue, params: LTWParams) -> sp.csr_matrix:
     """Sparse rest stiffness matrix ``K (3N, 3N)`` (SciPy CSR) of springs, shape, volume
     (exact: linear in the positions) and restoration."""
-    import scipy.sparse as sp
 
     rest = np.asarray(tissue.rest, float)
     N = len(rest)
@@ -354,7 +361,7 @@ def _rest_stiffness(tissue: LTWTissue, params: LTWParams):
     kr = float(params.k_restore)
     if kr != 0.0:
         K = K + kr * sp.identity(3 * N, format="csr")
-    return K
+    return cast(sp.csr_matrix, K)
 
 
 def quasi_static_constants(tissue: LTWTissue, params: LTWParams, *, safety: float = 1.6):
@@ -369,9 +376,6 @@ def quasi_static_constants(tissue: LTWTissue, params: LTWParams, *, safety: floa
         RigError: the free nodes have a floating (zero-stiffness) mode: enable diagonals,
             ``k_shape > 0`` or ``k_restore > 0``.
     """
-    import scipy.sparse as sp
-    import scipy.sparse.linalg as spla
-
     K = _rest_stiffness(tissue, params)
     free = np.asarray(tissue.free) > 0.5
     dof = np.flatnonzero(np.repeat(free, 3))
@@ -392,10 +396,12 @@ def quasi_static_constants(tissue: LTWTissue, params: LTWParams, *, safety: floa
         w = np.linalg.eigvalsh(A.toarray())
         lam_min, lam_max = float(w[0]), float(w[-1])
     else:
-        lam_max = float(spla.eigsh(A, k=1, which="LA", return_eigenvectors=False, tol=1e-3)[0])
+        lam_max = float(
+            spla.eigsh(A, k=1, which="LA", return_eigenvectors=False, tol=1e-3)[0]  # pyright: ignore[reportArgumentType] (SciPy's stub types tol as int)
+        )
         try:
             lam_min = float(
-                spla.eigsh(A, k=1, sigma=0.0, which="LM", return_eigenvectors=False, tol=1e-3)[0]
+                spla.eigsh(A, k=1, sigma=0.0, which="LM", return_eigenvectors=False, tol=1e-3)[0]  # pyright: ignore[reportArgumentType] (SciPy's stub types tol as int)
             )
         except RuntimeError:  # exactly singular factorisation
             lam_min = 0.0

@@ -13,6 +13,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import facs
+from ..anatomy.rig import synthesize
+from ..errors import RigError
+from ..render import Layer, rasterize, save_figure
 from .rig import LTWRig, synthesize_ltw
 
 __all__ = ["EMOTION_ORDER", "emotion_faces", "compare_emotions"]
@@ -52,18 +55,13 @@ def compare_emotions(
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ..render import Layer, rasterize
-
     tris = np.asarray(ltw_rig.triangles)
     faces = {"LTW": emotion_faces(ltw_rig, synthesize_ltw, intensity)}
     if pbd_rig is not None:
         if tuple(pbd_rig.muscle_names) != tuple(ltw_rig.muscle_names):
-            from ..errors import RigError
-
             raise RigError(
                 "the PBD and LTW rigs have different controls; build both from the same map."
             )
-        from ..anatomy.rig import synthesize
 
         faces = {"PBD": emotion_faces(pbd_rig, synthesize, intensity), **faces}
     rest = np.asarray(ltw_rig.rest)
@@ -100,6 +98,5 @@ def compare_emotions(
         fontsize=10,
     )
     fig.tight_layout()
-    from ..render import save_figure
 
     return save_figure(fig, path, dpi=100, close=True)

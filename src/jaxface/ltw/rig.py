@@ -34,7 +34,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..anatomy.frame import face_frame
+from ..anatomy.geometry import smooth_normals
+from ..anatomy.jaw import JawModel, JawPose
+from ..anatomy.muscle_map import MuscleSpec, load_muscle_map, place_muscles
+from ..anatomy.skin import eyelid_vertices
+from ..anatomy.skull import estimate_skull, mandible_mask, tissue_depth
 from ..errors import RigError
+from ..mesh import TriMesh
+from ..rigid import rotate_about_axes
 from .forces import kinematic_positions
 from .integrate import LTWModel, make_model, relax, residual
 from .tissue import LTWParams, build_tissue
@@ -56,6 +64,8 @@ class LTWInfo:
     Attributes: skin (TriMesh), landmarks, frame, skull, placed (PlacedMuscle list), specs,
     depth ``(V,)`` mm, mandible ``(V,)`` bool, fibres (list of :class:`Fibre`).
     """
+
+    skin: TriMesh
 
     def __init__(self, **kw):
         self.__dict__.update(kw)
@@ -83,7 +93,7 @@ class LTWRig(eqx.Module):
     """
 
     model: LTWModel
-    jaw: object
+    jaw: JawModel
     lid_nodes: jax.Array
     lid_fall: jax.Array
     lid_upper: jax.Array
@@ -158,8 +168,6 @@ class LTWRig(eqx.Module):
 
 
 def _as_mesh(skin):
-    from ..mesh import TriMesh
-
     if isinstance(skin, TriMesh):
         return skin, None
     if hasattr(skin, "mesh") and isinstance(skin.mesh, TriMesh):
@@ -171,9 +179,6 @@ def _as_mesh(skin):
 
 def _skull_columns(mesh, frame, skull, depth):
     """Skull node per skin vertex ``(V, 3)`` and mandible mask ``(V,)``."""
-    from ..anatomy.geometry import smooth_normals
-    from ..anatomy.skull import mandible_mask
-
     V = mesh.n_vertices
     off = skull.extras.get("offset_mesh") if getattr(skull, "extras", None) else None
     if off is not None and off.n_vertices == V:
@@ -200,8 +205,6 @@ def _skull_columns(mesh, frame, skull, depth):
 
 
 def _fibres_for(pm, ci, frame, mean_edge):
-    from ..anatomy.skull import mandible_mask
-
     kind = pm.kind
     m = ci[pm.name]
     if kind in ("linear", "sheet"):
@@ -272,12 +275,6 @@ def build_ltw_rig(
     Raises:
         RigError, LandmarkError, MeshError: unusable inputs (named in the message).
     """
-    from ..anatomy.frame import face_frame
-    from ..anatomy.jaw import JawModel
-    from ..anatomy.muscle_map import MuscleSpec, load_muscle_map, place_muscles
-    from ..anatomy.skin import eyelid_vertices
-    from ..anatomy.skull import estimate_skull, tissue_depth
-
     mesh, head = _as_mesh(skin)
     if landmarks is None and head is not None:
         landmarks = head.landmarks
@@ -323,6 +320,7 @@ def build_ltw_rig(
             lid_fall.append(fall)
             lid_upper.append(upper)
             lid_side.append(np.full(len(ids), k))
+        assert pm.axes is not None  # placement gives every eyelid its axes
         piv.append(np.asarray(pm.centre, float))
         axs.append(np.asarray(pm.axes[0], float))
         angs.append(angles)
@@ -398,8 +396,6 @@ def _puff_field(mesh, frame) -> np.ndarray:
     """``(V, 3)`` cheek-puff field: outward smoothed normals times the PBD rig's cheek bump
     (Gaussian around (+-42, -58) reference mm in the face frame, radii 22 x 20 reference mm,
     only beyond 8 mm from the midline); dimensionless weight in [0, 1] times a unit vector."""
-    from ..anatomy.geometry import smooth_normals
-
     x = np.asarray(mesh.vertices, float)
     n0 = smooth_normals(mesh, 3)
     loc = frame.to_local(x)
@@ -415,16 +411,6 @@ def _puff_field(mesh, frame) -> np.ndarray:
 # ----------------------------------------------------------------------------- synthesis
 
 
-def _rotate(p, pivot, axis, angle):
-    """Rodrigues rotation of points ``p (K, 3)`` about ``axis (K, 3)`` through ``pivot (K, 3)``
-    by ``angle (K,)`` radians."""
-    r = p - pivot
-    c, s = jnp.cos(angle)[:, None], jnp.sin(angle)[:, None]
-    kxr = jnp.cross(axis, r)
-    kdr = jnp.sum(axis * r, axis=-1, keepdims=True)
-    return pivot + r * c + kxr * s + axis * kdr * (1.0 - c)
-
-
 def _check_acts(rig: LTWRig, activations):
     a = jnp.asarray(activations)
     if a.ndim != 1 or a.shape[0] != rig.n_controls:
@@ -438,8 +424,6 @@ def _check_acts(rig: LTWRig, activations):
 
 
 def _solve(rig: LTWRig, activations, jaw, cheek_puff, n_steps: int):
-    from ..anatomy.jaw import JawPose
-
     a = _check_acts(rig, activations)
     if jaw is None:
         jaw = JawPose()
@@ -464,7 +448,7 @@ def _drives(rig: LTWRig, a, R, t, puff):
         ang = jnp.einsum("c,csl->sl", a, rig.lid_angles.astype(a.dtype)) * (jnp.pi / 180.0)
         per = jnp.where(rig.lid_upper, ang[rig.lid_side, 0], ang[rig.lid_side, 1]) * rig.lid_fall
         p0 = kin[rig.lid_nodes]
-        rot = _rotate(p0, rig.lid_pivot[rig.lid_side], rig.lid_axis[rig.lid_side], per)
+        rot = rotate_about_axes(p0, rig.lid_pivot[rig.lid_side], rig.lid_axis[rig.lid_side], per)
         kin = kin.at[rig.lid_nodes].set(rot)
     ext = jnp.zeros_like(tis.rest).at[V : 2 * V].set(puff * rig.puff_force * rig.puff_field)
     return kin, ext
@@ -501,8 +485,6 @@ def synthesize_ltw(rig: LTWRig, activations, jaw=None, cheek_puff=0.0):
 def equilibrium_residual(rig: LTWRig, activations, jaw=None, cheek_puff=0.0) -> float:
     """Largest equilibrium residual (mm, see :func:`jaxface.ltw.integrate.residual`) after
     ``rig.n_steps`` relaxation steps: a convergence check of a synthesis."""
-    from ..anatomy.jaw import JawPose
-
     jaw = JawPose() if jaw is None else jaw
     x = synthesize_nodes(rig, activations, jaw, cheek_puff)
     a = _check_acts(rig, activations).astype(x.dtype)

@@ -45,12 +45,15 @@ every node of a vertex used by no triangle.
 
 from __future__ import annotations
 
+from typing import Any
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from ..errors import MeshError, RigError
+from ..mesh import TriMesh
 
 __all__ = [
     "EPIDERMAL",
@@ -276,7 +279,7 @@ def element_volume_grad(ex):
     """
     xp = jnp if isinstance(ex, jax.Array) else np
     vol = 0.0
-    grads = [0.0] * 9
+    grads: list[Any] = [0.0] * 9
     for off in (0, 3):
         a, b, c, d, e, f = (ex[:, off + k] for k in range(6))
         ids = [off + k for k in range(6)]
@@ -420,8 +423,6 @@ def build_tissue(
     clen = np.linalg.norm(col, axis=1)
     fdep = np.minimum(float(fascia_fraction) * clen, float(fascia_max_depth))
     if self_clearance > 0:
-        from ..mesh import TriMesh
-
         dirs = col / np.maximum(clen, 1e-300)[:, None]
         hits = TriMesh(v, t, validate=False).ray_cast(
             v,
@@ -450,6 +451,9 @@ def build_tissue(
     used[t.reshape(-1)] = True
     uv = vid[used]
 
+    si: Any
+    sj: Any
+    fam: Any
     si, sj, fam = [], [], []
 
     def add(i, j, f):
