@@ -9,7 +9,9 @@ code  meaning
 0     success
 1     unexpected internal error (a bug: rerun with ``--debug`` for the traceback)
 2     bad usage or invalid input (unknown option, bad value, malformed mesh,
-      landmark or scan file: any :class:`jaxface.errors.JaxfaceError`)
+      landmark or scan file: any :class:`jaxface.errors.JaxfaceError`; an output
+      folder that cannot be created; a folder given where a file is expected;
+      an input too large for the memory)
 3     a required file or data folder does not exist
 130   interrupted (Ctrl-C)
 ====  ==========================================================================
@@ -132,7 +134,21 @@ def handle_errors(fn):
                 console.print_exception()
             raise _fail(EXIT_USAGE, str(e)) from None
         except PermissionError as e:
-            raise _fail(EXIT_USAGE, f"cannot write: {e}") from None
+            raise _fail(EXIT_USAGE, f"permission denied: {e}") from None
+        except (IsADirectoryError, NotADirectoryError, FileExistsError) as e:
+            # a path that is a folder where a file is expected, or the other way round
+            raise _fail(
+                EXIT_USAGE,
+                f"{e.strerror or e}: {e.filename}",
+                "Check the input and output paths (a folder where a file is expected, or a "
+                "file where a folder is expected).",
+            ) from None
+        except MemoryError:
+            raise _fail(
+                EXIT_USAGE,
+                "out of memory: the input is too large for this machine.",
+                "Decimate the mesh or give fewer scans/points (see docs/input-checks.md).",
+            ) from None
         except Exception as e:  # noqa: BLE001 - the CLI's last line of defence
             if _DEBUG:
                 console.print_exception()
@@ -217,11 +233,15 @@ def _root(
 
 # ----------------------------------------------------------------------------- demo
 def _check_out_dir(out: Path) -> Path:
-    if out.exists() and not out.is_dir():
-        raise typer.BadParameter(
-            f"{out} exists and is not a folder; give a folder path.", param_hint="'--out'"
-        )
-    return out
+    """``--out`` callback: the folder exists or can be created (a usage error, exit 2, with
+    the reason otherwise: a parent that is a file, no permission)."""
+    from .atomic import ensure_out_dir
+    from .errors import OutputError
+
+    try:
+        return ensure_out_dir(out)
+    except OutputError as e:
+        raise typer.BadParameter(str(e), param_hint="'--out'") from None
 
 
 @app.command(epilog=_EPILOG)

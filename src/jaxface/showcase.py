@@ -17,12 +17,13 @@
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+
+from .atomic import write_json_atomic, write_text_atomic
 
 __all__ = ["SYNTHETIC_SCANS", "run_showcase"]
 
@@ -132,8 +133,8 @@ def run_showcase(
     timings["total_s"] = time.perf_counter() - t_all
     report["timings"] = timings
     report["machine"] = {"jax": jax.__version__, "backend": jax.default_backend()}
-    (out / "report.json").write_text(json.dumps(report, indent=1))
-    (out / "report.md").write_text(_markdown(report))
+    write_json_atomic(out / "report.json", report)
+    write_text_atomic(out / "report.md", _markdown(report))
     return report
 
 

@@ -33,16 +33,17 @@ __all__ = ["register", "run_fit"]
 
 def _load(path: Path, landmarks: Path | None, what: str):
     """Load a scan with its landmarks (explicit file, or the .lm3 beside it)."""
-    from ..errors import DataNotFoundError, LandmarkError
+    from ..errors import LandmarkError
     from ..io import load_scan
+    from ..mesh import check_input_file
 
-    if not path.is_file():
-        raise DataNotFoundError(f"{what} file not found: {path}")
-    if landmarks is not None and not landmarks.is_file():
-        raise DataNotFoundError(f"landmark file of the {what} not found: {landmarks}")
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
+    check_input_file(path, f"{what} file")
+    if landmarks is not None:
+        check_input_file(landmarks, f"landmark file of the {what}")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
         scan = load_scan(path, landmarks=landmarks)
+    _show_label_warnings(caught)
     if scan.landmarks is None:
         raise LandmarkError(
             f"no landmarks for the {what} {path}: expected {path.with_suffix('.lm3')} beside it, or "
@@ -51,17 +52,27 @@ def _load(path: Path, landmarks: Path | None, what: str):
     return scan
 
 
+def _show_label_warnings(caught) -> None:
+    """Print the landmark-label warnings of a load (misspelled or unknown labels) on stderr;
+    the other load warnings (missing ear lobes and the like) stay quiet."""
+    from ..cli import console
+    from ..landmarks import LandmarkLabelWarning
+
+    for w in caught:
+        if issubclass(w.category, LandmarkLabelWarning):
+            console.print(f"[yellow]warning:[/] {w.message}", markup=True, soft_wrap=True)
+
+
 def _template(template: Path | None, template_landmarks: Path | None):
-    from ..errors import DataNotFoundError, LandmarkError
+    from ..errors import LandmarkError
     from ..landmarks import read_lm3
-    from ..mesh import load_mesh
+    from ..mesh import check_input_file, load_mesh
 
     if template is None:
         if template_landmarks is not None:
             raise LandmarkError("--template-landmarks needs --template (the mesh they belong to).")
         return None, None
-    if not template.is_file():
-        raise DataNotFoundError(f"template mesh not found: {template}")
+    check_input_file(template, "template mesh")
     lm = template_landmarks if template_landmarks is not None else template.with_suffix(".lm3")
     if not lm.is_file():
         raise LandmarkError(
@@ -99,6 +110,7 @@ def run_fit(
         on_written: optional ``(ExpressionFit, files) -> None`` called after each scan's files
             are written.
     """
+    from ..atomic import ensure_out_dir
     from ..errors import FitError, LandmarkError
     from ..fit.pipeline import SubjectOptions, _stem, fit_expressions, prepare_subject
     from ..fit.solve import FitOptions
@@ -112,6 +124,7 @@ def run_fit(
             f"{len(scan_landmarks)} --scan-landmarks for {len(scans)} --scan: give one per scan, in the "
             "same order (or none, to use the .lm3 files beside the scans)."
         )
+    ensure_out_dir(out)  # before the minute-long build: a bad --out fails at once
     step = on_step or (lambda s: None)
     step("reading the scans")
     n_scan = _load(neutral, neutral_landmarks, "neutral scan")
@@ -134,7 +147,6 @@ def run_fit(
     subject = prepare_subject(
         n_scan, template=tmesh, template_landmarks=tlm, options=sopt, progress=progress
     )
-    out.mkdir(parents=True, exist_ok=True)
     step(f"fitting {len(loaded)} scan(s)")
     results = fit_expressions(
         subject,
@@ -162,7 +174,7 @@ class RestartWhen(str, Enum):
 
 def register(app: typer.Typer) -> None:
     """Add ``jaxface fit`` to ``app``."""
-    from ..cli import _EPILOG, console, handle_errors
+    from ..cli import _EPILOG, _check_out_dir, console, handle_errors
 
     @app.command(epilog=_EPILOG)
     @handle_errors
@@ -174,7 +186,12 @@ def register(app: typer.Typer) -> None:
             ..., "--scan", "-s", help="Expression scan(s) of the same subject; repeat for a batch."
         ),
         out: Path = typer.Option(
-            ..., "--out", "-o", file_okay=False, help="Output folder (created if missing)."
+            ...,
+            "--out",
+            "-o",
+            file_okay=False,
+            callback=_check_out_dir,
+            help="Output folder (created if missing).",
         ),
         neutral_landmarks: Path | None = typer.Option(  # noqa: UP007
             None, "--neutral-landmarks", help="Neutral .lm3 (default: beside the neutral scan)."

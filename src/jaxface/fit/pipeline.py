@@ -24,7 +24,6 @@ before/after picture); the JSON layout is the ``jaxface fit`` contract.
 
 from __future__ import annotations
 
-import json
 import math
 import time
 import warnings
@@ -638,13 +637,13 @@ class ExpressionFit:
     def write(self, out_dir, *, pictures: bool = False) -> dict[str, Path]:
         """Write ``<stem>.json``, ``<stem>.fitted.ply`` (and ``<stem>.fit.png``). Returns the
         paths."""
+        from ..atomic import ensure_out_dir, write_json_atomic
         from ..mesh import save_mesh
 
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
+        out = ensure_out_dir(out_dir)
         files = {}
         p = out / f"{self.stem}.json"
-        p.write_text(json.dumps(_jsonable(self.to_dict()), indent=1))
+        write_json_atomic(p, _jsonable(self.to_dict()))
         files["json"] = p
         m = out / f"{self.stem}.fitted.ply"
         save_mesh(m, self.fitted, units="mm")
