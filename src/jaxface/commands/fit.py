@@ -10,7 +10,8 @@ Contract (other tools call it; keep it stable)::
 Landmark files default to the scan path with suffix ``.lm3``. Several ``--scan`` options fit a
 batch (solved together in one compiled call) with a progress bar. Per scan it writes
 ``DIR/<scan-stem>.json`` (keys: ``activations``, ``au_intensities``, ``au_motion_mm``, ``au_sparse``, ``jaw``, ``rigid``,
-``metrics``, ``baselines``, ``solver``, ``frame``; see :class:`jaxface.fit.pipeline.ExpressionFit`)
+``metrics``, ``baselines``, ``solver``, ``frame``, ``quality``: coverage, identity, noise
+floor and warnings, :mod:`jaxface.fit.quality`; see :class:`jaxface.fit.pipeline.ExpressionFit`)
 and ``DIR/<scan-stem>.fitted.ply`` (the fitted skin in the scan's own frame, mm); with
 ``--pictures`` also ``DIR/<scan-stem>.fit.png`` (scan, before, fit, error heat map).
 
@@ -370,6 +371,10 @@ def register(app: typer.Typer) -> None:
                 on_step=on_step,
                 on_written=done,
             )
+        for r in results:  # shown even with --quiet: the result may be meaningless
+            q = getattr(r, "quality", None)
+            for w in q.warnings if q is not None else ():
+                console.print(f"[yellow]warning:[/] {r.stem}: {w}", markup=True, soft_wrap=True)
         if quiet:
             return
         table = Table(

@@ -67,6 +67,7 @@ JSON_KEYS = (
     "baselines",
     "solver",
     "frame",
+    "quality",
 )
 
 
@@ -525,6 +526,7 @@ class ExpressionFit:
     face_mask: np.ndarray | None = None
     au_sparse: dict = field(default_factory=dict)
     au_sparse_misfit_mm: float | None = None
+    quality: Any = None
 
     @property
     def status(self) -> str:
@@ -614,6 +616,7 @@ class ExpressionFit:
             "baselines": {k: v.to_dict() for k, v in self.baselines.items()},
             "solver": self.solver_dict(),
             "frame": self.frame_dict(),
+            "quality": None if self.quality is None else self.quality.to_dict(),
         }
 
     def strongest_aus(
@@ -784,7 +787,8 @@ def fit_expressions(
     from .align import align_scans
     from .au_motion import au_motion, au_sparse, motion_gram
     from .baselines import baseline_b0, baseline_b1
-    from .metrics import fit_metrics
+    from .metrics import SurfaceIndex, fit_metrics
+    from .quality import assess, check_mirror
 
     opt = options or FitOptions()
     say = progress or (lambda s: None)
@@ -815,8 +819,12 @@ def fit_expressions(
     reg = subject.registration
     tris = subject.triangles
 
+    hands_of: dict[int, tuple] = {}  # alignment -> landmark handedness (neutral, scan)
+
     def prepare(s):
+        hands = check_mirror(subject.neutral.landmarks, s.landmarks, f"the scan {_stem(s)}")
         al = align_scans(s, subject.neutral, fixed_index=subject.neutral_index)
+        hands_of[id(al)] = hands
         return al, scan_fit_inputs(
             subject,
             s,
@@ -850,6 +858,17 @@ def fit_expressions(
         aus = au_intensities(
             f.activations, subject.muscle_names, JawPose(float(je[0]), float(je[1]), float(je[2]))
         )
+        quality = assess(
+            fitted_vertices=fitted.vertices,
+            neutral_vertices=b0m.vertices,
+            face_mask=reg.face_mask,
+            neutral_landmarks_on_skin=subject.landmarks_on(b0m.vertices),
+            scan_index=SurfaceIndex(*s.mesh_arrays()[:2]),
+            registration=reg,
+            au_intensities=aus,
+            au_motion_mm=motion,
+            hands=hands_of.get(id(al), (None, None)),
+        )
         notes = list(al.notes)
         if f.status != "successful":
             notes.append(
@@ -875,6 +894,7 @@ def fit_expressions(
             options=opt,
             notes=notes,
             face_mask=np.asarray(reg.face_mask, bool),
+            quality=quality,
         )
 
     for b0 in range(0, len(loaded), bs):

@@ -1,0 +1,283 @@
+"""Quality checks of an expression fit: is the input usable, and which AUs are real?
+
+Every fit (:func:`jaxface.fit.pipeline.fit_expressions`) carries a :class:`FitQuality`
+(the ``quality`` key of ``<stem>.json``; ``jaxface fit`` prints its warnings). The fit still
+completes on a poor input, with the warnings saying why its result is doubtful; only a
+mirrored scan is refused before fitting (:func:`check_mirror`), since no fit of a mirror
+image of the face means anything.
+
+Checks (units mm; thresholds measured on ``shared/data/bosphorus_style``, see
+``docs/input-checks.md`` for the table):
+
+* **coverage**: the share of the registered face (fitted skin, face region) that has scan
+  data within :data:`COVERAGE_DISTANCE_MM` and off the scan's border. A whole scan covers
+  0.88-0.92 of the face region (the region reaches under the chin and toward the ears where a
+  frontal scanner sees little); a scan with 90 % of its grid points removed keeps almost no
+  triangles (a range-grid cell needs three valid corners) and covers 0.0-0.1. Warned below
+  :data:`MIN_COVERAGE`: half of a whole scan's coverage, the point where most of the face
+  is fitted from no data.
+* **mirror**: the handedness of the landmark frame (:func:`handedness`: the sign of the
+  triple product of eye axis, face height and nose direction) of the expression scan must
+  equal the neutral's. A rigid alignment cannot undo a reflection; a mirrored scan is
+  refused (:class:`~jaxface.errors.FitError`).
+* **identity**: the median distance (mm) from the registered neutral's nose-bridge region
+  (within :data:`STABLE_RADIUS_MM` of the nose saddles, which no expression moves by more
+  than about 2 mm) to the expression scan, after the rigid alignment. Same subject: under
+  :data:`IDENTITY_MAX_MM`; another person's scan: several mm (see the docs table).
+* **noise floor**: the RMS distance (mm) between the neutral scan and the registered
+  neutral over the face (:attr:`Registration.residuals` where the scan has data): how well
+  the model reproduces this subject at rest. An AU whose share of the fit moves the skin by
+  less than that (``au_motion_mm``, RMS over the face) cannot be told from the misfit: it is
+  listed in ``aus_within_noise`` and reported as 0 in ``au_intensities_above_noise``. A
+  fit where every AU is within noise shows no expression (the self-fit of a neutral).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import FitError
+
+__all__ = [
+    "COVERAGE_DISTANCE_MM",
+    "MIN_COVERAGE",
+    "STABLE_RADIUS_MM",
+    "IDENTITY_MAX_MM",
+    "FitQuality",
+    "handedness",
+    "check_mirror",
+    "coverage",
+    "stable_mask",
+    "identity_distance",
+    "noise_floor",
+    "assess",
+]
+
+#: A face vertex is covered when the scan surface lies within this distance (mm) of it: about
+#: four times the 0.5 mm grid step of the scans, well above the fit residual (0.2-0.4 mm).
+COVERAGE_DISTANCE_MM = 2.0
+
+#: Least share of the face region covered by scan data before a warning (dimensionless).
+MIN_COVERAGE = 0.45
+
+#: Radius (mm) around the nose saddles of the region compared for the identity check.
+STABLE_RADIUS_MM = 12.0
+
+#: Largest median distance (mm) of the nose-bridge region to the expression scan for the
+#: same person.
+IDENTITY_MAX_MM = 1.0
+
+_EYES = ("Outer left eye corner", "Outer right eye corner")
+_NOSE = "Nose tip"
+_LOW = ("Chin middle", "Upper lip outer middle", "Left mouth corner", "Right mouth corner")
+_SADDLES = ("Nose saddle left", "Nose saddle right")
+
+
+@dataclass
+class FitQuality:
+    """The quality report of one fit (the ``quality`` key of the JSON; mm).
+
+    Attributes:
+        coverage: share of the face region with scan data within
+            :data:`COVERAGE_DISTANCE_MM` (0-1).
+        identity_mm: median distance of the registered neutral's nose bridge to the
+            expression scan after alignment, mm (None when the landmarks are missing).
+        noise_floor_mm: the subject's registration residual (RMS, mm).
+        aus_within_noise: AUs whose skin motion is under the noise floor.
+        au_intensities_above_noise: the AU intensities with those set to 0.
+        handedness: ``(neutral, scan)`` handedness values (see :func:`handedness`).
+        warnings: human-readable warnings (empty when all checks pass).
+    """
+
+    coverage: float
+    identity_mm: float | None
+    noise_floor_mm: float
+    aus_within_noise: list[str]
+    au_intensities_above_noise: dict[str, float]
+    handedness: tuple[float | None, float | None] = (None, None)
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return not self.warnings
+
+    def to_dict(self) -> dict:
+        return {
+            "ok": self.ok,
+            "coverage": float(self.coverage),
+            "coverage_distance_mm": COVERAGE_DISTANCE_MM,
+            "min_coverage": MIN_COVERAGE,
+            "identity_mm": None if self.identity_mm is None else float(self.identity_mm),
+            "identity_max_mm": IDENTITY_MAX_MM,
+            "noise_floor_mm": float(self.noise_floor_mm),
+            "aus_within_noise": list(self.aus_within_noise),
+            "au_intensities_above_noise": {
+                k: float(v) for k, v in self.au_intensities_above_noise.items()
+            },
+            "handedness": {"neutral": self.handedness[0], "scan": self.handedness[1]},
+            "warnings": list(self.warnings),
+        }
+
+
+def _lm(landmarks, name):
+    try:
+        return np.asarray(landmarks[name], dtype=np.float64)
+    except (KeyError, TypeError):
+        return None
+
+
+def handedness(landmarks) -> float | None:
+    """The normalised triple product ``det[e1, e2, e3] / (|e1| |e2| |e3|)`` in [-1, 1] of
+    the eye axis ``e1`` (outer right -> outer left eye corner), the face height ``e2`` (the
+    mean of the available mouth/chin landmarks -> the eyes' midpoint) and the nose direction
+    ``e3`` (the eyes' midpoint -> nose tip). Rotations keep it, a reflection flips its sign:
+    a face with the subject's left at +x looking along +z gives about +0.3 to +0.6.
+    None when the landmarks needed are missing."""
+    le, re_, nose = (_lm(landmarks, n) for n in (*_EYES, _NOSE))
+    low = [p for p in (_lm(landmarks, n) for n in _LOW) if p is not None]
+    if le is None or re_ is None or nose is None or not low:
+        return None
+    mid = 0.5 * (le + re_)
+    e1, e2, e3 = le - re_, mid - np.mean(low, axis=0), nose - mid
+    n = np.linalg.norm(e1) * np.linalg.norm(e2) * np.linalg.norm(e3)
+    if not np.isfinite(n) or n <= 0:
+        return None
+    return float(np.linalg.det(np.stack([e1, e2, e3])) / n)
+
+
+def check_mirror(neutral_landmarks, scan_landmarks, what: str = "the scan"):
+    """Refuse an expression scan that is a mirror image of the neutral.
+
+    Returns:
+        ``(neutral handedness, scan handedness)`` (None where landmarks are missing).
+
+    Raises:
+        FitError: the handedness signs differ (:func:`handedness`).
+    """
+    hn, hs = handedness(neutral_landmarks), handedness(scan_landmarks)
+    if hn is not None and hs is not None and np.sign(hn) != np.sign(hs):
+        raise FitError(
+            f"{what} is a mirror image of the neutral scan (landmark handedness {hs:+.2f} vs "
+            f"{hn:+.2f}: left and right are swapped, or the scan was flipped). A rigid "
+            "alignment cannot undo a reflection, so no fit would mean anything. Negate x of "
+            "the scan and its landmarks (Landmarks.mirrored()) or fix its left/right labels."
+        )
+    return hn, hs
+
+
+def coverage(vertices, face_mask, scan_index, distance_mm: float = COVERAGE_DISTANCE_MM) -> float:
+    """Share (0-1) of the face vertices ``vertices[face_mask]`` (mm, in the scan's frame)
+    with a scan-surface point within ``distance_mm`` that is not on the scan's border.
+
+    Args:
+        vertices: ``(V, 3)`` mm. face_mask: ``(V,)`` bool.
+        scan_index: :class:`jaxface.fit.metrics.SurfaceIndex` of the scan.
+    """
+    v = np.asarray(vertices, dtype=np.float64)[np.asarray(face_mask, bool)]
+    if len(v) == 0:
+        return 0.0
+    cp = scan_index.query(v, max_distance=2.0 * distance_mm)
+    return float(np.mean((cp.distances <= distance_mm) & ~cp.on_boundary))
+
+
+def stable_mask(vertices, landmarks, face_mask, radius_mm: float = STABLE_RADIUS_MM):
+    """``(V,)`` bool: face vertices within ``radius_mm`` of a nose saddle or their midpoint
+    (the nose bridge), or None when the saddles are missing.
+
+    Args:
+        vertices: ``(V, 3)`` mm. landmarks: the landmarks on ``vertices`` (mm).
+        face_mask: ``(V,)`` bool.
+    """
+    s = [_lm(landmarks, n) for n in _SADDLES]
+    if any(p is None for p in s):
+        return None
+    pts = np.stack([s[0], s[1], 0.5 * (s[0] + s[1])])
+    v = np.asarray(vertices, dtype=np.float64)
+    d = np.min(np.linalg.norm(v[:, None, :] - pts[None], axis=2), axis=1)
+    return (d <= radius_mm) & np.asarray(face_mask, bool)
+
+
+def identity_distance(vertices, mask, scan_index) -> float | None:
+    """Median distance (mm) from ``vertices[mask]`` (the registered neutral moved into the
+    scan's frame) to the scan surface, over points with scan data (closest point off the
+    border); None when fewer than 10 have data."""
+    if mask is None or not np.any(mask):
+        return None
+    cp = scan_index.query(np.asarray(vertices, dtype=np.float64)[mask], max_distance=20.0)
+    d = cp.distances[~cp.on_boundary]
+    if len(d) < 10:
+        return None
+    return float(np.median(d))
+
+
+def noise_floor(registration) -> float:
+    """RMS distance (mm) of the registered neutral's face vertices that have scan data to
+    the neutral scan (:attr:`Registration.residuals`)."""
+    m = np.asarray(registration.face_mask, bool) & np.asarray(registration.has_data, bool)
+    r = np.asarray(registration.residuals, dtype=np.float64)[m]
+    r = r[np.isfinite(r)]
+    return float(np.sqrt(np.mean(r * r))) if len(r) else 0.0
+
+
+def assess(
+    *,
+    fitted_vertices,
+    neutral_vertices,
+    face_mask,
+    neutral_landmarks_on_skin,
+    scan_index,
+    registration,
+    au_intensities: dict,
+    au_motion_mm: dict,
+    hands: tuple = (None, None),
+) -> FitQuality:
+    """All the checks of the module doc for one fit.
+
+    Args:
+        fitted_vertices: ``(V, 3)`` the fitted skin in the scan's frame, mm.
+        neutral_vertices: ``(V, 3)`` the registered neutral moved into the scan's frame
+            (the B0 baseline), mm.
+        face_mask: ``(V,)`` bool face region.
+        neutral_landmarks_on_skin: the rig's landmarks on ``neutral_vertices`` (mm).
+        scan_index: SurfaceIndex of the expression scan.
+        registration: the subject's :class:`~jaxface.fit.register.Registration`.
+        au_intensities: AU -> intensity; au_motion_mm: AU -> RMS skin motion, mm.
+        hands: the handedness pair from :func:`check_mirror`.
+    """
+    warn = []
+    cov = coverage(fitted_vertices, face_mask, scan_index)
+    if cov < MIN_COVERAGE:
+        warn.append(
+            f"the scan covers only {cov:.0%} of the face (scan data within "
+            f"{COVERAGE_DISTANCE_MM:g} mm; at least {MIN_COVERAGE:.0%} expected): most of the "
+            "fit is guessed, not measured. Use a complete scan."
+        )
+    mask = stable_mask(neutral_vertices, neutral_landmarks_on_skin, face_mask)
+    ident = identity_distance(neutral_vertices, mask, scan_index)
+    if ident is not None and ident > IDENTITY_MAX_MM:
+        warn.append(
+            f"the nose bridge of the scan lies {ident:.1f} mm (median) from the neutral's after "
+            f"alignment (at most {IDENTITY_MAX_MM:g} mm for the same person): the scan may be "
+            "of another person than the neutral. The AUs then describe the difference of two "
+            "faces, not an expression."
+        )
+    floor = noise_floor(registration)
+    within = sorted(k for k, m in au_motion_mm.items() if float(m) < floor)
+    above = {k: (0.0 if k in within else float(v)) for k, v in au_intensities.items()}
+    if au_motion_mm and len(within) == len(au_motion_mm):
+        warn.append(
+            f"every AU moves the skin by less than the noise floor ({floor:.2f} mm RMS, how well "
+            "the model reproduces this subject at rest): no expression is detected; the "
+            "intensities are noise (au_intensities_above_noise are all 0)."
+        )
+    return FitQuality(
+        coverage=cov,
+        identity_mm=ident,
+        noise_floor_mm=floor,
+        aus_within_noise=within,
+        au_intensities_above_noise=above,
+        handedness=tuple(hands),
+        warnings=warn,
+    )
