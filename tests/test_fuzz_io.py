@@ -118,7 +118,8 @@ def test_bnt_absurd_headers_do_not_allocate(tmp_path):
     for what, header in cases.items():
         p = tmp_path / "bad.bnt"
         p.write_bytes(bytes(header) + bytes(data[12:]))
-        _expect_clean_error(lambda: read_bnt(p), ScanFormatError)
+        err = _expect_clean_error(lambda: read_bnt(p), ScanFormatError)
+        assert str(p) in str(err), what
     # a plane count that disagrees with the grid
     bad = bytearray(data)
     n = struct.unpack_from("<H", bad, 12)[0]
@@ -330,7 +331,8 @@ def test_ply_truncated_at_every_section(tmp_path):
     for what, cut in cuts.items():
         q = tmp_path / "cut.ply"
         q.write_bytes(data[:cut])
-        _expect_clean_error(lambda: load_mesh(q), MeshError)
+        err = _expect_clean_error(lambda: load_mesh(q), MeshError)
+        assert str(q) in str(err), what
     text = _ply_ascii(mesh)
     lines = text.splitlines()
     for k in (0, 3, 9, 9 + nv // 2, 9 + nv, len(lines) - 1):

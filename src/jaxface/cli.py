@@ -108,6 +108,19 @@ def _fail(code: int, message: str, hint: str | None = None) -> typer.Exit:
     return typer.Exit(code)
 
 
+def _nonfinite_option(kwargs: dict) -> tuple[str, float] | None:
+    """The first ``(name, value)`` of a command's parsed options that is a NaN/inf float
+    (click's number ranges let ``nan`` through: every comparison with it is false)."""
+    import math
+
+    for name, value in kwargs.items():
+        values = value if isinstance(value, (list, tuple)) else [value]
+        for v in values:
+            if isinstance(v, float) and not math.isfinite(v):
+                return name, v
+    return None
+
+
 def handle_errors(fn):
     """Decorator for command functions: map exceptions to messages and exit codes.
 
@@ -119,6 +132,12 @@ def handle_errors(fn):
     def wrapper(*args, **kwargs):
         from .errors import DataNotFoundError, JaxfaceError
 
+        bad = _nonfinite_option(kwargs)
+        if bad is not None:
+            raise _fail(
+                EXIT_USAGE,
+                f"--{bad[0].replace('_', '-')} {bad[1]}: not a finite number; give a number.",
+            )
         try:
             return fn(*args, **kwargs)
         except (typer.Exit, typer.Abort):

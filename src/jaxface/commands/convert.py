@@ -98,6 +98,7 @@ def convert_file(
     Returns:
         a summary dict (kinds, counts, grid shape, files written).
     """
+    from ..atomic import ensure_out_dir
     from ..errors import ScanFormatError
     from ..io.bosphorus import DEFAULT_MAX_EDGE_FACTOR, read_bnt, write_bnt
     from ..landmarks import read_lm3, write_lm3
@@ -136,7 +137,7 @@ def convert_file(
             f"the output landmarks {lm_out} would overwrite the input landmarks "
             f"{lm_path} in other units; write the output to another folder or stem."
         )
-    dst.parent.mkdir(parents=True, exist_ok=True)
+    ensure_out_dir(dst.parent, "OUT's folder")
     if k_in == "bnt":
         scan = read_bnt(src, units=in_units, check_size=check_size)
         info["grid"] = list(scan.shape)

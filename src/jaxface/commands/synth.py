@@ -352,6 +352,8 @@ def register(app: typer.Typer) -> None:
                         )
                     emotions.append(item)
         aus = parse_aus([s for a in au for s in a.split(",") if s.strip()])
+        parse_muscles(muscle, [str(m).partition("=")[0].strip() for m in muscle])  # values
+        # are checked before the minute-long rig build; the names once the rig is built
         jaw_given = any(v != 0.0 for v in (jaw_pitch, jaw_yaw, jaw_protrusion))
         if not (emotions or aus or muscle or jaw_given or list_controls or compare_backends):
             raise RigError(

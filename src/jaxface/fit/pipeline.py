@@ -788,7 +788,7 @@ def fit_expressions(
     from .au_motion import au_motion, au_sparse, motion_gram
     from .baselines import baseline_b0, baseline_b1
     from .metrics import SurfaceIndex, fit_metrics
-    from .quality import assess, check_mirror
+    from .quality import assess, check_mirror, check_usable, coverage
 
     opt = options or FitOptions()
     say = progress or (lambda s: None)
@@ -820,11 +820,18 @@ def fit_expressions(
     tris = subject.triangles
 
     hands_of: dict[int, tuple] = {}  # alignment -> landmark handedness (neutral, scan)
+    index_of: dict[int, Any] = {}  # alignment -> SurfaceIndex of its scan
 
     def prepare(s):
         hands = check_mirror(subject.neutral.landmarks, s.landmarks, f"the scan {_stem(s)}")
         al = align_scans(s, subject.neutral, fixed_index=subject.neutral_index)
+        index = SurfaceIndex(*s.mesh_arrays()[:2])
+        check_usable(
+            coverage(al.transform.inverse().apply(reg.vertices), reg.face_mask, index),
+            f"the scan {_stem(s)}",
+        )
         hands_of[id(al)] = hands
+        index_of[id(al)] = index
         return al, scan_fit_inputs(
             subject,
             s,
@@ -860,10 +867,10 @@ def fit_expressions(
         )
         quality = assess(
             fitted_vertices=fitted.vertices,
-            neutral_vertices=b0m.vertices,
             face_mask=reg.face_mask,
-            neutral_landmarks_on_skin=subject.landmarks_on(b0m.vertices),
-            scan_index=SurfaceIndex(*s.mesh_arrays()[:2]),
+            neutral_landmarks=subject.neutral.landmarks,
+            scan_landmarks=s.landmarks,
+            scan_index=index_of.get(id(al)) or SurfaceIndex(*s.mesh_arrays()[:2]),
             registration=reg,
             au_intensities=aus,
             au_motion_mm=motion,

@@ -20,10 +20,13 @@ Checks (units mm; thresholds measured on ``shared/data/bosphorus_style``, see
   triple product of eye axis, face height and nose direction) of the expression scan must
   equal the neutral's. A rigid alignment cannot undo a reflection; a mirrored scan is
   refused (:class:`~jaxface.errors.FitError`).
-* **identity**: the median distance (mm) from the registered neutral's nose-bridge region
-  (within :data:`STABLE_RADIUS_MM` of the nose saddles, which no expression moves by more
-  than about 2 mm) to the expression scan, after the rigid alignment. Same subject: under
-  :data:`IDENTITY_MAX_MM`; another person's scan: several mm (see the docs table).
+* **identity**: the RMS difference (mm) of the mutual distances of the eye corners and nose
+  saddles (:func:`identity_distance`) between the neutral's and the expression scan's
+  landmarks: a rigid invariant of the bony upper face. Same subject: at most 0.57 mm on the
+  shared data, another person: 3.5 mm and more; warned above :data:`IDENTITY_MAX_MM`. (A
+  surface measure, the distance of the registered nose bridge to the scan after the rigid
+  alignment, separates worse: the alignment fits exactly that region, so another person's
+  smile came within 0.47 mm while the same person's nose wrinkle stood 1.0 mm off.)
 * **noise floor**: the RMS distance (mm) between the neutral scan and the registered
   neutral over the face (:attr:`Registration.residuals` where the scan has data): how well
   the model reproduces this subject at rest. An AU whose share of the fit moves the skin by
@@ -43,17 +46,24 @@ from ..errors import FitError
 __all__ = [
     "COVERAGE_DISTANCE_MM",
     "MIN_COVERAGE",
-    "STABLE_RADIUS_MM",
+    "MIN_USABLE_COVERAGE",
+    "check_usable",
+    "IDENTITY_LABELS",
     "IDENTITY_MAX_MM",
     "FitQuality",
     "handedness",
     "check_mirror",
     "coverage",
-    "stable_mask",
     "identity_distance",
     "noise_floor",
     "assess",
 ]
+
+#: Below this share of the face covered by the scan (before the fit: the registered neutral
+#: moved into the scan's frame, whose mouth and brows an expression has moved away from the
+#: scan, so whole scans give 0.6-0.9) the scan is refused as unusable: a scan with 90 % of its
+#: grid points removed gives 0.001 on the shared data.
+MIN_USABLE_COVERAGE = 0.05
 
 #: A face vertex is covered when the scan surface lies within this distance (mm) of it: about
 #: four times the 0.5 mm grid step of the scans, well above the fit residual (0.2-0.4 mm).
@@ -62,12 +72,23 @@ COVERAGE_DISTANCE_MM = 2.0
 #: Least share of the face region covered by scan data before a warning (dimensionless).
 MIN_COVERAGE = 0.45
 
-#: Radius (mm) around the nose saddles of the region compared for the identity check.
-STABLE_RADIUS_MM = 12.0
+#: The landmarks whose mutual distances the identity check compares: the eye corners and
+#: the nose saddles sit on bone and cartilage that no expression deforms much (the nose tip,
+#: moved 3.6 mm by a nose wrinkle, is left out).
+IDENTITY_LABELS = (
+    "Outer left eye corner",
+    "Inner left eye corner",
+    "Inner right eye corner",
+    "Outer right eye corner",
+    "Nose saddle left",
+    "Nose saddle right",
+)
 
-#: Largest median distance (mm) of the nose-bridge region to the expression scan for the
-#: same person.
-IDENTITY_MAX_MM = 1.0
+#: Largest RMS difference (mm) of those distances for the same person. Measured on the
+#: shared data: the same subject's scans differ by at most 0.57 mm (E_HAPPY: the squint moves
+#: the outer eye corners), the other subject's by at least 3.49 mm; 2 mm lies between them
+#: and leaves room for about 1.5 mm of landmark placement noise of hand-placed landmarks.
+IDENTITY_MAX_MM = 2.0
 
 _EYES = ("Outer left eye corner", "Outer right eye corner")
 _NOSE = "Nose tip"
@@ -82,8 +103,8 @@ class FitQuality:
     Attributes:
         coverage: share of the face region with scan data within
             :data:`COVERAGE_DISTANCE_MM` (0-1).
-        identity_mm: median distance of the registered neutral's nose bridge to the
-            expression scan after alignment, mm (None when the landmarks are missing).
+        identity_mm: :func:`identity_distance` of the neutral's and the scan's landmarks,
+            mm (None when the landmarks are missing).
         noise_floor_mm: the subject's registration residual (RMS, mm).
         aus_within_noise: AUs whose skin motion is under the noise floor.
         au_intensities_above_noise: the AU intensities with those set to 0.
@@ -167,6 +188,22 @@ def check_mirror(neutral_landmarks, scan_landmarks, what: str = "the scan"):
     return hn, hs
 
 
+def check_usable(cov: float, what: str = "the scan") -> None:
+    """Refuse a scan whose coverage (before the fit) is under :data:`MIN_USABLE_COVERAGE`.
+
+    Raises:
+        FitError: naming the coverage and what to do.
+    """
+    if not cov >= MIN_USABLE_COVERAGE:
+        raise FitError(
+            f"{what} covers only {cov:.1%} of the face (scan surface within "
+            f"{COVERAGE_DISTANCE_MM:g} mm of the registered neutral after the rigid alignment, "
+            f"at least {MIN_USABLE_COVERAGE:.0%} needed): it is too sparse or holey to fit "
+            "(a range grid with most points removed keeps almost no triangles). Use a "
+            "complete scan."
+        )
+
+
 def coverage(vertices, face_mask, scan_index, distance_mm: float = COVERAGE_DISTANCE_MM) -> float:
     """Share (0-1) of the face vertices ``vertices[face_mask]`` (mm, in the scan's frame)
     with a scan-surface point within ``distance_mm`` that is not on the scan's border.
@@ -182,34 +219,22 @@ def coverage(vertices, face_mask, scan_index, distance_mm: float = COVERAGE_DIST
     return float(np.mean((cp.distances <= distance_mm) & ~cp.on_boundary))
 
 
-def stable_mask(vertices, landmarks, face_mask, radius_mm: float = STABLE_RADIUS_MM):
-    """``(V,)`` bool: face vertices within ``radius_mm`` of a nose saddle or their midpoint
-    (the nose bridge), or None when the saddles are missing.
-
-    Args:
-        vertices: ``(V, 3)`` mm. landmarks: the landmarks on ``vertices`` (mm).
-        face_mask: ``(V,)`` bool.
+def identity_distance(neutral_landmarks, scan_landmarks) -> float | None:
+    """RMS difference (mm) of the 15 distances between the four eye corners and the two nose
+    saddles (:data:`IDENTITY_LABELS`) of two landmark sets: 0 for the same rigid shape, in
+    any pose and after a reflection too. None when fewer than four of the labels are in both.
     """
-    s = [_lm(landmarks, n) for n in _SADDLES]
-    if any(p is None for p in s):
+    pairs = [(_lm(neutral_landmarks, n), _lm(scan_landmarks, n)) for n in IDENTITY_LABELS]
+    both = [(p, q) for p, q in pairs if p is not None and q is not None]
+    if len(both) < 4:
         return None
-    pts = np.stack([s[0], s[1], 0.5 * (s[0] + s[1])])
-    v = np.asarray(vertices, dtype=np.float64)
-    d = np.min(np.linalg.norm(v[:, None, :] - pts[None], axis=2), axis=1)
-    return (d <= radius_mm) & np.asarray(face_mask, bool)
-
-
-def identity_distance(vertices, mask, scan_index) -> float | None:
-    """Median distance (mm) from ``vertices[mask]`` (the registered neutral moved into the
-    scan's frame) to the scan surface, over points with scan data (closest point off the
-    border); None when fewer than 10 have data."""
-    if mask is None or not np.any(mask):
-        return None
-    cp = scan_index.query(np.asarray(vertices, dtype=np.float64)[mask], max_distance=20.0)
-    d = cp.distances[~cp.on_boundary]
-    if len(d) < 10:
-        return None
-    return float(np.median(d))
+    a = np.stack([p for p, _ in both])
+    b = np.stack([q for _, q in both])
+    names = range(len(both))
+    i, j = np.triu_indices(len(names), 1)
+    da = np.linalg.norm(a[i] - a[j], axis=1)
+    db = np.linalg.norm(b[i] - b[j], axis=1)
+    return float(np.sqrt(np.mean((da - db) ** 2)))
 
 
 def noise_floor(registration) -> float:
@@ -224,9 +249,9 @@ def noise_floor(registration) -> float:
 def assess(
     *,
     fitted_vertices,
-    neutral_vertices,
     face_mask,
-    neutral_landmarks_on_skin,
+    neutral_landmarks,
+    scan_landmarks,
     scan_index,
     registration,
     au_intensities: dict,
@@ -237,10 +262,9 @@ def assess(
 
     Args:
         fitted_vertices: ``(V, 3)`` the fitted skin in the scan's frame, mm.
-        neutral_vertices: ``(V, 3)`` the registered neutral moved into the scan's frame
-            (the B0 baseline), mm.
         face_mask: ``(V,)`` bool face region.
-        neutral_landmarks_on_skin: the rig's landmarks on ``neutral_vertices`` (mm).
+        neutral_landmarks, scan_landmarks: the landmarks of the neutral and the expression
+            scan (mm, any frames).
         scan_index: SurfaceIndex of the expression scan.
         registration: the subject's :class:`~jaxface.fit.register.Registration`.
         au_intensities: AU -> intensity; au_motion_mm: AU -> RMS skin motion, mm.
@@ -254,14 +278,13 @@ def assess(
             f"{COVERAGE_DISTANCE_MM:g} mm; at least {MIN_COVERAGE:.0%} expected): most of the "
             "fit is guessed, not measured. Use a complete scan."
         )
-    mask = stable_mask(neutral_vertices, neutral_landmarks_on_skin, face_mask)
-    ident = identity_distance(neutral_vertices, mask, scan_index)
+    ident = identity_distance(neutral_landmarks, scan_landmarks)
     if ident is not None and ident > IDENTITY_MAX_MM:
         warn.append(
-            f"the nose bridge of the scan lies {ident:.1f} mm (median) from the neutral's after "
-            f"alignment (at most {IDENTITY_MAX_MM:g} mm for the same person): the scan may be "
-            "of another person than the neutral. The AUs then describe the difference of two "
-            "faces, not an expression."
+            f"the eye corners and nose saddles of the scan are spaced {ident:.1f} mm (RMS) "
+            f"differently from the neutral's (at most {IDENTITY_MAX_MM:g} mm for the same "
+            "person): the scan may be of another person than the neutral. The AUs then "
+            "describe the difference of two faces, not an expression."
         )
     floor = noise_floor(registration)
     within = sorted(k for k, m in au_motion_mm.items() if float(m) < floor)
