@@ -16,6 +16,9 @@ import pytest
 from jaxface.errors import FitError
 from jaxface.fit import quality as Q
 
+# one subject build and three fits: minutes on a loaded 2-core machine
+pytestmark = pytest.mark.timeout(1800)
+
 FAST = dict(
     n_points=600, outer_iterations=3, max_steps=20, extra_iterations=0, restart_iterations=0
 )

@@ -870,7 +870,7 @@ def fit_expressions(
             face_mask=reg.face_mask,
             neutral_landmarks=subject.neutral.landmarks,
             scan_landmarks=s.landmarks,
-            scan_index=index_of.get(id(al)) or SurfaceIndex(*s.mesh_arrays()[:2]),
+            scan_index=index_of[id(al)],
             registration=reg,
             au_intensities=aus,
             au_motion_mm=motion,
