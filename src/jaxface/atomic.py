@@ -27,8 +27,36 @@ __all__ = [
     "write_text_atomic",
     "write_json_atomic",
     "ensure_out_dir",
+    "check_out_dir",
     "find_nonfinite",
 ]
+
+
+def check_out_dir(path, option: str = "--out") -> Path:
+    """Check, without creating anything, that the output folder ``path`` exists or can be
+    created: it is not a file, no parent is a file, and the nearest existing parent is
+    writable. Returns it as a :class:`Path`.
+
+    Raises:
+        OutputError: naming the reason.
+    """
+    p = Path(os.fspath(path))
+    if p.exists() and not p.is_dir():
+        raise OutputError(f"{option} {p}: exists and is a file, not a folder; give a folder path.")
+    for parent in p.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise OutputError(
+                    f"{option} {p}: cannot create the folder because {parent} is a file, not "
+                    "a folder; choose another output path."
+                )
+            if not p.exists() and not os.access(parent, os.W_OK | os.X_OK):
+                raise OutputError(
+                    f"{option} {p}: cannot create the folder: {parent} is not writable; choose "
+                    "a writable path."
+                )
+            break
+    return p
 
 
 def ensure_out_dir(path, option: str = "--out") -> Path:
@@ -38,15 +66,7 @@ def ensure_out_dir(path, option: str = "--out") -> Path:
         OutputError: the folder cannot be created or used: ``path`` or one of its parents is
             a file, permission is denied, or the file system refuses (the reason is named).
     """
-    p = Path(os.fspath(path))
-    if p.exists() and not p.is_dir():
-        raise OutputError(f"{option} {p}: exists and is a file, not a folder; give a folder path.")
-    for parent in p.parents:
-        if parent.exists() and not parent.is_dir():
-            raise OutputError(
-                f"{option} {p}: cannot create the folder because {parent} is a file, not a "
-                "folder; choose another output path."
-            )
+    p = check_out_dir(path, option)
     try:
         p.mkdir(parents=True, exist_ok=True)
     except OSError as e:

@@ -253,12 +253,13 @@ def _root(
 # ----------------------------------------------------------------------------- demo
 def _check_out_dir(out: Path) -> Path:
     """``--out`` callback: the folder exists or can be created (a usage error, exit 2, with
-    the reason otherwise: a parent that is a file, no permission)."""
-    from .atomic import ensure_out_dir
+    the reason otherwise: a parent that is a file, no permission). Nothing is created here;
+    the command creates the folder when it writes."""
+    from .atomic import check_out_dir
     from .errors import OutputError
 
     try:
-        return ensure_out_dir(out)
+        return check_out_dir(out)
     except OutputError as e:
         raise typer.BadParameter(str(e), param_hint="'--out'") from None
 

@@ -12,9 +12,11 @@
   jaw model clamps it smoothly to its limits (documented there).
 * traced inputs (the call sits inside the caller's ``jax.jit`` / ``vmap`` / ``grad``, as in
   the fit) cannot be inspected in Python; there :func:`equinox.error_if` makes the compiled
-  call fail at run time when an activation, the jaw pose or the cheek puff is NaN/inf (an
-  ``EquinoxRuntimeError`` whose message starts with ``RigError:``). Ranges are not checked
-  under tracing: a fit keeps its controls within its own bounds.
+  call fail at run time when an activation, the jaw pose or the cheek puff is NaN/inf: under
+  ``equinox.filter_jit`` an ``EquinoxRuntimeError`` whose message starts with ``RigError:``;
+  under a plain ``jax.jit`` JAX wraps the same message in a ``JaxRuntimeError`` or
+  ``ValueError`` about a failed callback. Ranges are not checked under tracing: a fit keeps
+  its controls within its own bounds.
 
 ``build_rig`` (the skin): a :class:`~jaxface.mesh.TriMesh` (or a head with ``.mesh``) with
 NaN/inf vertices (count and first id), more than
