@@ -15,6 +15,9 @@ import pytest
 from jaxface.anatomy.jaw import JawPose
 from jaxface.errors import MeshError, RigError
 
+# a rig build and several compilations: minutes on a loaded 2-core machine
+pytestmark = pytest.mark.timeout(1800)
+
 
 @pytest.fixture(scope="module")
 def rig():
@@ -84,23 +87,16 @@ def test_dict_activations_with_nan_refused(rig):
 
 
 def test_traced_nan_raises_inside_jit(rig):
-    """Inside a caller's ``eqx.filter_jit`` the error is an ``EquinoxRuntimeError``; inside a
-    plain ``jax.jit`` JAX reports the failed callback as a ``JaxRuntimeError`` or
-    ``ValueError`` whose text carries the same message."""
+    """Traced controls inside a caller's ``eqx.filter_jit`` and ``jax.vmap``: a NaN row makes
+    the compiled call raise an ``EquinoxRuntimeError`` with the message (under a plain
+    ``jax.jit`` JAX wraps the same message in a ``JaxRuntimeError`` or ``ValueError``)."""
     from jaxface.anatomy.rig import synthesize
 
-    runtime = (eqx.EquinoxRuntimeError, jax.errors.JaxRuntimeError, ValueError)
-    f = eqx.filter_jit(lambda a: synthesize(rig, a))
-    ok = f(_a(rig))
-    assert np.all(np.isfinite(np.asarray(ok)))
+    f = eqx.filter_jit(jax.vmap(lambda a: synthesize(rig, a)))
+    good = jnp.stack([_a(rig), _a(rig).at[0].set(0.5)])
+    assert np.all(np.isfinite(np.asarray(f(good))))
     with pytest.raises(eqx.EquinoxRuntimeError, match="RigError"):
-        jax.block_until_ready(f(_a(rig).at[3].set(jnp.nan)))
-    with pytest.raises(runtime, match="RigError"):
-        jax.block_until_ready(jax.jit(lambda a: synthesize(rig, a))(_a(rig).at[0].set(jnp.inf)))
-    # vmap over a batch with one bad row
-    batch = jnp.stack([_a(rig), _a(rig).at[0].set(jnp.nan)])
-    with pytest.raises(runtime, match="RigError"):
-        jax.block_until_ready(eqx.filter_jit(jax.vmap(lambda a: synthesize(rig, a)))(batch))
+        jax.block_until_ready(f(good.at[1, 3].set(jnp.nan)))
 
 
 def test_checked_equals_unchecked(rig):
