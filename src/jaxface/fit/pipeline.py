@@ -113,6 +113,9 @@ class Subject:
         neutral_index: :class:`jaxface.fit.metrics.SurfaceIndex` of the neutral scan.
         face_index: :class:`SurfaceIndex` of the registered neutral's face region.
         timings: seconds per build step.
+        au_noise_floor: AU -> intensity of the self-fit (the neutral fitted to itself), the
+            AU readout's noise floor (:mod:`jaxface.fit.quality`); set by the first
+            :func:`fit_expressions` call.
     """
 
     neutral: Any
@@ -129,6 +132,7 @@ class Subject:
     face_index: Any
     backend: str
     timings: dict = field(default_factory=dict)
+    au_noise_floor: dict | None = None
 
     @property
     def muscle_names(self) -> tuple[str, ...]:
@@ -755,6 +759,7 @@ def fit_expressions(
     progress: Callable[[str], None] | None = None,
     batch_size: int | None = None,
     on_result: Callable[[ExpressionFit], None] | None = None,
+    noise_floor: bool = True,
 ) -> list[ExpressionFit]:
     """Fit a batch of expression scans of the subject.
 
@@ -772,6 +777,9 @@ def fit_expressions(
             (README, "A batch fits its scans two at a time"), and each scan gets the fit it
             gets alone.
         on_result: called with each finished :class:`ExpressionFit` (e.g. to write it).
+        noise_floor: fit the subject's neutral to itself once (stored in
+            ``subject.au_noise_floor``, one more fit per subject) for the AU readout's noise
+            floor in each result's ``quality``; False skips it (no noise check).
 
     Returns:
         one :class:`ExpressionFit` per scan, in order.
@@ -871,9 +879,8 @@ def fit_expressions(
             neutral_landmarks=subject.neutral.landmarks,
             scan_landmarks=s.landmarks,
             scan_index=index_of[id(al)],
-            registration=reg,
             au_intensities=aus,
-            au_motion_mm=motion,
+            noise_floor=subject.au_noise_floor if noise_floor else None,
             hands=hands_of.get(id(al), (None, None)),
         )
         notes = list(al.notes)
@@ -904,6 +911,24 @@ def fit_expressions(
             quality=quality,
         )
 
+    if noise_floor and loaded and subject.au_noise_floor is None:
+        say("fitting the neutral to itself (the AU readout's noise floor)")
+        _, inp_n = prepare(subject.neutral)
+        (f_n,) = fit_points(
+            subject.forward,
+            subject.response,
+            subject.fit_ids,
+            subject.face_triangles,
+            [inp_n],
+            subject.landmark_tri,
+            subject.landmark_bary,
+            opt,
+            progress=say,
+        )
+        jn = f_n.jaw_effective
+        subject.au_noise_floor = au_intensities(
+            f_n.activations, subject.muscle_names, JawPose(float(jn[0]), float(jn[1]), float(jn[2]))
+        )
     for b0 in range(0, len(loaded), bs):
         batch = loaded[b0 : b0 + bs]
         say(

@@ -27,12 +27,14 @@ Checks (units mm; thresholds measured on ``shared/data/bosphorus_style``, see
   surface measure, the distance of the registered nose bridge to the scan after the rigid
   alignment, separates worse: the alignment fits exactly that region, so another person's
   smile came within 0.47 mm while the same person's nose wrinkle stood 1.0 mm off.)
-* **noise floor**: the RMS distance (mm) between the neutral scan and the registered
-  neutral over the face (:attr:`Registration.residuals` where the scan has data): how well
-  the model reproduces this subject at rest. An AU whose share of the fit moves the skin by
-  less than that (``au_motion_mm``, RMS over the face) cannot be told from the misfit: it is
-  listed in ``aus_within_noise`` and reported as 0 in ``au_intensities_above_noise``. A
-  fit where every AU is within noise shows no expression (the self-fit of a neutral).
+* **noise floor**: the AU intensities of the *self-fit*, the subject's neutral scan fitted
+  to itself with the same options (:func:`jaxface.fit.pipeline.fit_expressions` runs it once
+  per subject): a scan without expression, so whatever it reports is the readout's bias for
+  this subject (the registered neutral does not match the scan exactly, and the fit spends
+  activations on that misfit). An AU whose intensity is at most :data:`NOISE_FACTOR` times
+  its self-fit value cannot be told from that bias: it is listed in ``aus_within_noise`` and
+  reported as 0 in ``au_intensities_above_noise``. A fit where every AU is within noise
+  shows no expression (the self-fit itself, or a neutral of the same session).
 """
 
 from __future__ import annotations
@@ -49,13 +51,13 @@ __all__ = [
     "MIN_USABLE_COVERAGE",
     "check_usable",
     "IDENTITY_LABELS",
+    "NOISE_FACTOR",
     "IDENTITY_MAX_MM",
     "FitQuality",
     "handedness",
     "check_mirror",
     "coverage",
     "identity_distance",
-    "noise_floor",
     "assess",
 ]
 
@@ -90,6 +92,12 @@ IDENTITY_LABELS = (
 #: and leaves room for about 1.5 mm of landmark placement noise of hand-placed landmarks.
 IDENTITY_MAX_MM = 2.0
 
+#: An AU counts only when its intensity exceeds this many times its self-fit intensity: the
+#: self-fit's bias comes from the misfit of the registered neutral, which another scan of the
+#: same session repeats only roughly (scan noise, a slightly different alignment); a factor
+#: of 2 keeps the bias of one scan from passing for an expression in the next.
+NOISE_FACTOR = 2.0
+
 _EYES = ("Outer left eye corner", "Outer right eye corner")
 _NOSE = "Nose tip"
 _LOW = ("Chin middle", "Upper lip outer middle", "Left mouth corner", "Right mouth corner")
@@ -105,8 +113,8 @@ class FitQuality:
             :data:`COVERAGE_DISTANCE_MM` (0-1).
         identity_mm: :func:`identity_distance` of the neutral's and the scan's landmarks,
             mm (None when the landmarks are missing).
-        noise_floor_mm: the subject's registration residual (RMS, mm).
-        aus_within_noise: AUs whose skin motion is under the noise floor.
+        noise_floor: AU -> intensity of the self-fit (empty when it was not run).
+        aus_within_noise: AUs at most :data:`NOISE_FACTOR` times their self-fit intensity.
         au_intensities_above_noise: the AU intensities with those set to 0.
         handedness: ``(neutral, scan)`` handedness values (see :func:`handedness`).
         warnings: human-readable warnings (empty when all checks pass).
@@ -114,7 +122,7 @@ class FitQuality:
 
     coverage: float
     identity_mm: float | None
-    noise_floor_mm: float
+    noise_floor: dict[str, float]
     aus_within_noise: list[str]
     au_intensities_above_noise: dict[str, float]
     handedness: tuple[float | None, float | None] = (None, None)
@@ -132,7 +140,8 @@ class FitQuality:
             "min_coverage": MIN_COVERAGE,
             "identity_mm": None if self.identity_mm is None else float(self.identity_mm),
             "identity_max_mm": IDENTITY_MAX_MM,
-            "noise_floor_mm": float(self.noise_floor_mm),
+            "noise_floor": {k: float(v) for k, v in self.noise_floor.items()},
+            "noise_factor": NOISE_FACTOR,
             "aus_within_noise": list(self.aus_within_noise),
             "au_intensities_above_noise": {
                 k: float(v) for k, v in self.au_intensities_above_noise.items()
@@ -237,15 +246,6 @@ def identity_distance(neutral_landmarks, scan_landmarks) -> float | None:
     return float(np.sqrt(np.mean((da - db) ** 2)))
 
 
-def noise_floor(registration) -> float:
-    """RMS distance (mm) of the registered neutral's face vertices that have scan data to
-    the neutral scan (:attr:`Registration.residuals`)."""
-    m = np.asarray(registration.face_mask, bool) & np.asarray(registration.has_data, bool)
-    r = np.asarray(registration.residuals, dtype=np.float64)[m]
-    r = r[np.isfinite(r)]
-    return float(np.sqrt(np.mean(r * r))) if len(r) else 0.0
-
-
 def assess(
     *,
     fitted_vertices,
@@ -253,9 +253,8 @@ def assess(
     neutral_landmarks,
     scan_landmarks,
     scan_index,
-    registration,
     au_intensities: dict,
-    au_motion_mm: dict,
+    noise_floor: dict | None,
     hands: tuple = (None, None),
 ) -> FitQuality:
     """All the checks of the module doc for one fit.
@@ -266,8 +265,8 @@ def assess(
         neutral_landmarks, scan_landmarks: the landmarks of the neutral and the expression
             scan (mm, any frames).
         scan_index: SurfaceIndex of the expression scan.
-        registration: the subject's :class:`~jaxface.fit.register.Registration`.
-        au_intensities: AU -> intensity; au_motion_mm: AU -> RMS skin motion, mm.
+        au_intensities: AU -> intensity.
+        noise_floor: AU -> the self-fit's intensity (None or empty: no noise check).
         hands: the handedness pair from :func:`check_mirror`.
     """
     warn = []
@@ -286,19 +285,24 @@ def assess(
             "person): the scan may be of another person than the neutral. The AUs then "
             "describe the difference of two faces, not an expression."
         )
-    floor = noise_floor(registration)
-    within = sorted(k for k, m in au_motion_mm.items() if float(m) < floor)
+    floor = dict(noise_floor or {})
+    within = (
+        sorted(k for k, v in au_intensities.items() if float(v) <= NOISE_FACTOR * floor.get(k, 0.0))
+        if floor
+        else []
+    )
     above = {k: (0.0 if k in within else float(v)) for k, v in au_intensities.items()}
-    if au_motion_mm and len(within) == len(au_motion_mm):
+    if floor and au_intensities and len(within) == len(au_intensities):
+        top = max(au_intensities.items(), key=lambda kv: kv[1])
         warn.append(
-            f"every AU moves the skin by less than the noise floor ({floor:.2f} mm RMS, how well "
-            "the model reproduces this subject at rest): no expression is detected; the "
-            "intensities are noise (au_intensities_above_noise are all 0)."
+            f"every AU is within the noise floor (at most {NOISE_FACTOR:g} times what the "
+            f"neutral fitted to itself reports; strongest {top[0]} {top[1]:.2f}): no expression "
+            "is detected; au_intensities_above_noise are all 0."
         )
     return FitQuality(
         coverage=cov,
         identity_mm=ident,
-        noise_floor_mm=floor,
+        noise_floor=floor,
         aus_within_noise=within,
         au_intensities_above_noise=above,
         handedness=tuple(hands),
