@@ -62,7 +62,7 @@ def fitted():
     neutral = _load(root, "bs900_N_N_0")
     subject = prepare_subject(neutral, options=SubjectOptions(levels=2, pitch_knots=6))
     scans = [_load(root, s) for s in STEMS]
-    fits = fit_expressions(subject, scans, options=FitOptions(**FAST))
+    fits = fit_expressions(subject, scans, options=FitOptions(**FAST), noise_floor=True)
     return root, subject, dict(zip(STEMS, fits))
 
 

@@ -156,6 +156,7 @@ def run_fit(
         progress=progress,
         batch_size=batch_size,
         on_result=lambda r: _write(r, out, pictures, on_written),
+        noise_floor=True,  # one self-fit of the neutral: the AU readout's noise floor
     )
     return results
 

@@ -759,7 +759,7 @@ def fit_expressions(
     progress: Callable[[str], None] | None = None,
     batch_size: int | None = None,
     on_result: Callable[[ExpressionFit], None] | None = None,
-    noise_floor: bool = True,
+    noise_floor: bool = False,
 ) -> list[ExpressionFit]:
     """Fit a batch of expression scans of the subject.
 
@@ -779,7 +779,8 @@ def fit_expressions(
         on_result: called with each finished :class:`ExpressionFit` (e.g. to write it).
         noise_floor: fit the subject's neutral to itself once (stored in
             ``subject.au_noise_floor``, one more fit per subject) for the AU readout's noise
-            floor in each result's ``quality``; False skips it (no noise check).
+            floor in each result's ``quality`` (``jaxface fit`` does); False (default): no
+            noise check unless ``subject.au_noise_floor`` is already set.
 
     Returns:
         one :class:`ExpressionFit` per scan, in order.
@@ -880,7 +881,7 @@ def fit_expressions(
             scan_landmarks=s.landmarks,
             scan_index=index_of[id(al)],
             au_intensities=aus,
-            noise_floor=subject.au_noise_floor if noise_floor else None,
+            noise_floor=subject.au_noise_floor,
             hands=hands_of.get(id(al), (None, None)),
         )
         notes = list(al.notes)
