@@ -6,6 +6,7 @@ Run from the repository root::
 
 Measures, alternately in one run (min and median over ``--repeat`` calls, ms):
 
+* the Python-side control check alone (:func:`jaxface.validate.check_controls`, min of 50);
 * ``synthesize`` with its checks (:func:`jaxface.validate.checked_controls`: NaN/range checks
   of concrete controls in Python) against the same jit-compiled body without them
   (``synthesize.__wrapped__``);
@@ -62,7 +63,7 @@ def main() -> None:
     from jaxface.head import generic_head
     from jaxface.hygiene import clean_mesh
     from jaxface.mesh import load_mesh, save_mesh
-    from jaxface.validate import check_skin
+    from jaxface.validate import check_controls, check_skin
 
     head = generic_head()
     t = time.perf_counter()
@@ -92,6 +93,12 @@ def main() -> None:
     ):
         jax.block_until_ready(f())  # compile
     same = float(jnp.max(jnp.abs(jit_checked(a) - jit_raw(a))))
+    # the Python-side check alone (what the checked synthesize adds to a concrete call)
+    t_chk = []
+    for _ in range(50):
+        t = time.perf_counter()
+        check_controls(rig.muscle_names, a, jaw, 0.0)
+        t_chk.append(1e3 * (time.perf_counter() - t))
     res = _alternate(
         {
             "synthesize_checked": lambda: synthesize(rig, a, jaw),
@@ -124,6 +131,7 @@ def main() -> None:
         "load_mesh_ms_min": min(t_load),
         "clean_mesh_ms_min": min(t_clean),
         "checked_vs_unchecked_max_diff_mm": same,
+        "check_controls_ms_min": min(t_chk),
         **{f"{k}_{s}": v[s] for k, v in res.items() for s in ("min_ms", "median_ms")},
     }
     for k in ("synthesize", "jit", "vmap8"):
@@ -137,6 +145,7 @@ def main() -> None:
             f"{k:<22}{res[f'{k}_checked']['min_ms']:>12.2f}"
             f"{res[f'{k}_unchecked']['min_ms']:>14.2f}{out[f'{k}_ratio_min']:>13.3f}"
         )
+    print(f"check_controls alone: {min(t_chk):.3f} ms (min of 50)")
     print(
         f"check_skin {skin_check_ms:.1f} ms vs build_rig {build_s:.1f} s; clean_mesh "
         f"{min(t_clean):.1f} ms vs load_mesh {min(t_load):.1f} ms; results equal to "
