@@ -115,7 +115,7 @@ class Subject:
         timings: seconds per build step.
         au_noise_floor: AU -> intensity of the self-fit (the neutral fitted to itself), the
             AU readout's noise floor (:mod:`jaxface.fit.quality`); set by the first
-            :func:`fit_expressions` call.
+            :func:`fit_expressions` call with ``noise_floor=True``.
     """
 
     neutral: Any
