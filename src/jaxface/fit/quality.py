@@ -10,12 +10,14 @@ Checks (units mm; thresholds measured on ``shared/data/bosphorus_style``, see
 ``docs/input-checks.md`` for the table):
 
 * **coverage**: the share of the registered face (fitted skin, face region) that has scan
-  data within :data:`COVERAGE_DISTANCE_MM` and off the scan's border. A whole scan covers
-  0.88-0.92 of the face region (the region reaches under the chin and toward the ears where a
-  frontal scanner sees little); a scan with 90 % of its grid points removed keeps almost no
-  triangles (a range-grid cell needs three valid corners) and covers 0.0-0.1. Warned below
-  :data:`MIN_COVERAGE`: half of a whole scan's coverage, the point where most of the face
-  is fitted from no data.
+  data within :data:`COVERAGE_DISTANCE_MM` and off the scan's border. Whole scans of the
+  shared data cover 0.77-0.92 of the face region (the self-fit 0.92, a smile 0.84, another
+  person's smile 0.77: the region reaches under the chin and toward the ears where a frontal
+  scanner sees little); half of the smile's scan (x < 0) covers 0.42, a tenth of its
+  triangles 0.09; a scan with 90 % of its grid points removed keeps almost no triangles (a
+  range-grid cell needs three valid corners) and is refused before the fit
+  (:func:`check_usable`). Warned below :data:`MIN_COVERAGE`: about half of a whole scan's
+  coverage, where half of the face is fitted from no data.
 * **mirror**: the handedness of the landmark frame (:func:`handedness`: the sign of the
   triple product of eye axis, face height and nose direction) of the expression scan must
   equal the neutral's. A rigid alignment cannot undo a reflection; a mirrored scan is
