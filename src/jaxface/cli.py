@@ -9,7 +9,9 @@ code  meaning
 0     success
 1     unexpected internal error (a bug: rerun with ``--debug`` for the traceback)
 2     bad usage or invalid input (unknown option, bad value, malformed mesh,
-      landmark or scan file: any :class:`jaxface.errors.JaxfaceError`)
+      landmark or scan file: any :class:`jaxface.errors.JaxfaceError`; an output
+      folder that cannot be created; a folder given where a file is expected;
+      an input too large for the memory)
 3     a required file or data folder does not exist
 130   interrupted (Ctrl-C)
 ====  ==========================================================================
@@ -106,6 +108,19 @@ def _fail(code: int, message: str, hint: str | None = None) -> typer.Exit:
     return typer.Exit(code)
 
 
+def _nonfinite_option(kwargs: dict) -> tuple[str, float] | None:
+    """The first ``(name, value)`` of a command's parsed options that is a NaN/inf float
+    (click's number ranges let ``nan`` through: every comparison with it is false)."""
+    import math
+
+    for name, value in kwargs.items():
+        values = value if isinstance(value, (list, tuple)) else [value]
+        for v in values:
+            if isinstance(v, float) and not math.isfinite(v):
+                return name, v
+    return None
+
+
 def handle_errors(fn):
     """Decorator for command functions: map exceptions to messages and exit codes.
 
@@ -117,6 +132,12 @@ def handle_errors(fn):
     def wrapper(*args, **kwargs):
         from .errors import DataNotFoundError, JaxfaceError
 
+        bad = _nonfinite_option(kwargs)
+        if bad is not None:
+            raise _fail(
+                EXIT_USAGE,
+                f"--{bad[0].replace('_', '-')} {bad[1]}: not a finite number; give a number.",
+            )
         try:
             return fn(*args, **kwargs)
         except (typer.Exit, typer.Abort):
@@ -132,7 +153,21 @@ def handle_errors(fn):
                 console.print_exception()
             raise _fail(EXIT_USAGE, str(e)) from None
         except PermissionError as e:
-            raise _fail(EXIT_USAGE, f"cannot write: {e}") from None
+            raise _fail(EXIT_USAGE, f"permission denied: {e}") from None
+        except (IsADirectoryError, NotADirectoryError, FileExistsError) as e:
+            # a path that is a folder where a file is expected, or the other way round
+            raise _fail(
+                EXIT_USAGE,
+                f"{e.strerror or e}: {e.filename}",
+                "Check the input and output paths (a folder where a file is expected, or a "
+                "file where a folder is expected).",
+            ) from None
+        except MemoryError:
+            raise _fail(
+                EXIT_USAGE,
+                "out of memory: the input is too large for this machine.",
+                "Decimate the mesh or give fewer scans/points (see docs/input-checks.md).",
+            ) from None
         except Exception as e:  # noqa: BLE001 - the CLI's last line of defence
             if _DEBUG:
                 console.print_exception()
@@ -217,11 +252,16 @@ def _root(
 
 # ----------------------------------------------------------------------------- demo
 def _check_out_dir(out: Path) -> Path:
-    if out.exists() and not out.is_dir():
-        raise typer.BadParameter(
-            f"{out} exists and is not a folder; give a folder path.", param_hint="'--out'"
-        )
-    return out
+    """``--out`` callback: the folder exists or can be created (a usage error, exit 2, with
+    the reason otherwise: a parent that is a file, no permission). Nothing is created here;
+    the command creates the folder when it writes."""
+    from .atomic import check_out_dir
+    from .errors import OutputError
+
+    try:
+        return check_out_dir(out)
+    except OutputError as e:
+        raise typer.BadParameter(str(e), param_hint="'--out'") from None
 
 
 @app.command(epilog=_EPILOG)

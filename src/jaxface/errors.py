@@ -76,3 +76,14 @@ class FitError(JaxfaceError, RuntimeError):
 
 class DataNotFoundError(JaxfaceError, FileNotFoundError):
     """Reference data (the ``shared/`` folder) or an input file is missing."""
+
+
+class OutputError(JaxfaceError, ValueError):
+    """An output cannot be written: its folder cannot be created (a parent is a file, no
+    permission), the path is a folder, or the data to write holds NaN/inf (jaxface never
+    writes non-finite numbers)."""
+
+
+class InputPathError(JaxfaceError, ValueError):
+    """An input path exists but is not usable as given: a folder where a file is expected,
+    an unreadable file, or a file of another format than its suffix says."""

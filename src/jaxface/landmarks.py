@@ -18,13 +18,16 @@ from __future__ import annotations
 import difflib
 import os
 import re
+import warnings
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import cast
 
 import numpy as np
 
-from .errors import DataNotFoundError, LandmarkError, ScanFormatError
+from .atomic import write_text_atomic
+from .errors import LandmarkError, ScanFormatError
+from .mesh import check_input_file as _check_input_file
 
 __all__ = [
     "BOSPHORUS_LABELS",
@@ -34,6 +37,10 @@ __all__ = [
     "MPEG4_FDP",
     "Landmarks",
     "canonical_label",
+    "fuzzy_label",
+    "LandmarkLabelWarning",
+    "FUZZY_MIN_RATIO",
+    "FUZZY_MARGIN",
     "check_side",
     "read_lm3",
     "write_lm3",
@@ -205,6 +212,62 @@ def canonical_label(text: str) -> str | None:
         if "right" in ts and "left" not in ts:
             return "Right ear lobe"
     return None
+
+
+#: Least similarity (:class:`difflib.SequenceMatcher` ratio of the lower-case, word-sorted
+#: spellings) for a misspelled label to be read as a known one. One wrong, added or missing
+#: letter in a label of 8 or more letters scores at least 0.88 ("Nose tipp" -> "Nose tip":
+#: 0.94); two different labels of the same side score at most 0.86 ("Inner right eye
+#: corner" / "Outer right eye corner"), which is why a match must also beat the runner-up by
+#: :data:`FUZZY_MARGIN`.
+FUZZY_MIN_RATIO = 0.85
+
+#: The best match must beat the second best by this much (ratio), else the label is unknown.
+FUZZY_MARGIN = 0.04
+
+
+class LandmarkLabelWarning(UserWarning):
+    """A landmark label was misspelled and read as the closest known label, or is unknown
+    (kept as a custom label that jaxface does not use)."""
+
+
+def _sides(words) -> set[str]:
+    return {w for w in words if w in ("left", "right")}
+
+
+def fuzzy_label(text: str) -> tuple[str, float] | None:
+    """The Bosphorus label a misspelled ``text`` most likely means, with its similarity in
+    [0, 1], or None when no label is close enough or two are equally close.
+
+    Exact spelling variants go through :func:`canonical_label` first. The candidate must
+    name the same side (left/right words) as ``text``, reach :data:`FUZZY_MIN_RATIO`, and
+    beat the next candidate by :data:`FUZZY_MARGIN`.
+
+    >>> fuzzy_label("Nose tipp")[0]
+    'Nose tip'
+    """
+    exact = canonical_label(text)
+    if exact is not None:
+        return exact, 1.0
+    toks = _tokens(text)
+    if not toks:
+        return None
+    words = " ".join(sorted(toks))
+    side = _sides(toks)
+    scores = []
+    for lbl in BOSPHORUS_LABELS:
+        ref = _key(lbl)
+        if _sides(ref) != side and side:
+            continue
+        scores.append((difflib.SequenceMatcher(None, words, " ".join(ref)).ratio(), lbl))
+    scores.sort(reverse=True)
+    if not scores or scores[0][0] < FUZZY_MIN_RATIO:
+        return None
+    if len(scores) > 1 and scores[0][0] - scores[1][0] < FUZZY_MARGIN:
+        return None
+    if _sides(_key(scores[0][1])) != side:  # "Nose tipp" has no side; a sided label needs one
+        return None
+    return scores[0][1], float(scores[0][0])
 
 
 def _normalise_name(name: str) -> str:
@@ -469,17 +532,20 @@ _COUNT_RE = re.compile(r"^\s*(\d+)\s+landmarks?\s*:?\s*$", re.IGNORECASE)
 def read_lm3(path) -> Landmarks:
     """Read a Bosphorus ``.lm3`` landmark file (coordinates in mm).
 
-    Labels are canonicalised (spelling variants accepted); unknown labels are kept as written.
+    Labels are canonicalised (spelling variants accepted). A misspelled label close to one
+    known label (:func:`fuzzy_label`) is read as that label with a
+    :class:`LandmarkLabelWarning`; other unknown labels are kept as written (custom labels)
+    and listed in one :class:`LandmarkLabelWarning`.
 
     Raises:
         DataNotFoundError: the file does not exist.
         ScanFormatError: no ``N landmarks:`` line, truncated file (fewer than N label /
-            coordinate pairs), a coordinate line that is not three finite numbers, or a
-            duplicated label; the message names the file and line number.
+            coordinate pairs), more landmarks after the N announced (the header count is
+            wrong: nothing is silently dropped), a coordinate line that is not three finite
+            numbers, or a duplicated label; the message names the file and line number.
     """
     path = Path(os.fspath(path))
-    if not path.is_file():
-        raise DataNotFoundError(f"landmark file not found: {path}")
+    _check_input_file(path, "landmark file")
     try:
         text = path.read_bytes().decode("utf-8-sig")
     except UnicodeDecodeError:
@@ -505,6 +571,8 @@ def read_lm3(path) -> Landmarks:
     names: list[str] = []
     pos: list[list[float]] = []
     seen: dict[str, int] = {}
+    fixed: list[str] = []
+    unknown: list[str] = []
     while len(names) < n:
         # label line (skip blank lines between entries)
         while i < len(lines) and not lines[i].strip():
@@ -535,6 +603,13 @@ def read_lm3(path) -> Landmarks:
                 f"{label!r}: expected three finite numbers 'x y z' in mm."
             )
         i += 1
+        if canonical_label(label) is None:
+            fz = fuzzy_label(label)
+            if fz is not None:
+                fixed.append(f"{label!r} -> {fz[0]!r} (line {label_line})")
+                label = fz[0]
+            else:
+                unknown.append(label)
         key = _normalise_name(label)
         if key in seen:
             raise ScanFormatError(
@@ -544,6 +619,28 @@ def read_lm3(path) -> Landmarks:
         seen[key] = label_line
         names.append(label)
         pos.append(xyz)
+    extra = [ln.strip() for ln in lines[i:] if ln.strip() and not ln.strip().startswith("#")]
+    if extra:
+        raise ScanFormatError(
+            f"{path}: the header announces {n} landmarks but {len(extra)} more non-empty "
+            f"line(s) follow them (about {len(extra) // 2} more landmarks, from line "
+            f"{i + 1}: {extra[0]!r}). Correct the count in the 'N landmarks:' line."
+        )
+    if fixed:
+        warnings.warn(
+            f"{path}: misspelled landmark label(s) read as the closest Bosphorus label: "
+            + "; ".join(fixed)
+            + ". Correct the file to silence this warning.",
+            LandmarkLabelWarning,
+            stacklevel=2,
+        )
+    if unknown:
+        warnings.warn(
+            f"{path}: unknown landmark label(s) {unknown}, kept as custom labels that jaxface "
+            f"does not use; the Bosphorus labels are {list(BOSPHORUS_LABELS)}.",
+            LandmarkLabelWarning,
+            stacklevel=2,
+        )
     return Landmarks(names, np.asarray(pos, dtype=np.float64).reshape(-1, 3))
 
 
@@ -564,7 +661,7 @@ def write_lm3(
     for name, p in zip(landmarks.names, landmarks.positions):
         out.append(name)
         out.append(f"{p[0]:.6f} {p[1]:.6f} {p[2]:.6f}")
-    path.write_text("\n".join(out) + "\n")
+    write_text_atomic(path, "\n".join(out) + "\n")
 
 
 # ---------------------------------------------------------------------------------------------

@@ -49,7 +49,8 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import dijkstra
 
-from .errors import DataNotFoundError, MeshError, UnitsError
+from .atomic import write_bytes_atomic, write_text_atomic
+from .errors import DataNotFoundError, InputPathError, MeshError, UnitsError
 from .normals import vertex_normals
 from .surface import SurfacePoints
 
@@ -63,6 +64,8 @@ __all__ = [
     "save_mesh",
     "unit_scale",
     "check_plausible_size",
+    "check_finite_vertices",
+    "check_input_file",
     "closest_point_barycentric",
     "DEGENERATE_TOL",
     "UNIT_SCALE",
@@ -262,6 +265,26 @@ def _as_vertices(vertices) -> np.ndarray:
     v = np.array(v, dtype=np.float64, copy=True)
     v.setflags(write=False)
     return v
+
+
+def check_finite_vertices(vertices, *, source: str = "mesh") -> None:
+    """Raise :class:`MeshError` (``problem="nonfinite_vertices"``) if any vertex of the
+    ``(V, 3)`` array holds NaN or inf, naming how many and the first vertex id.
+
+    Args:
+        vertices: ``(V, 3)`` coordinates (any unit).
+        source: what to call the data in the message (e.g. the file name).
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    bad = np.flatnonzero(~np.all(np.isfinite(v.reshape(len(v), -1)), axis=1)) if v.size else []
+    if len(bad):
+        raise MeshError(
+            f"{source} {len(bad)} of {len(v)} vertices have NaN or inf coordinates (first: "
+            f"vertex {int(bad[0])} = {v[bad[0]].tolist()}; ids {_list(bad)}). Remove or repair "
+            "them (e.g. fill the holes of the scan) and try again.",
+            problem="nonfinite_vertices",
+            elements=bad,
+        )
 
 
 def _as_triangles(triangles) -> np.ndarray:
@@ -1042,6 +1065,28 @@ class TriMesh:
 # --------------------------------------------------------------------------------------------
 
 
+def check_input_file(path, what: str = "input file") -> Path:
+    """``path`` as a :class:`Path` if it is a readable file.
+
+    Raises:
+        DataNotFoundError: nothing exists at ``path``.
+        InputPathError: ``path`` is a folder (or another non-file), or it cannot be read.
+    """
+    p = Path(os.fspath(path))
+    if p.is_dir():
+        raise InputPathError(f"{what} {p} is a folder, not a file; give the path of the file.")
+    if not p.exists():
+        hint = ""
+        if p.parent.exists() and not p.parent.is_dir():
+            hint = f" ({p.parent} is a file, not a folder)"
+        raise DataNotFoundError(f"{what} not found: {p}{hint}.")
+    if not p.is_file():
+        raise InputPathError(f"{what} {p} is not a regular file; give the path of a file.")
+    if not os.access(p, os.R_OK):
+        raise InputPathError(f"{what} {p} cannot be read (permission denied).")
+    return p
+
+
 def unit_scale(units: str) -> float:
     """Millimetres per unit for ``units`` in {"mm", "cm", "m"} (long names accepted);
     raises :class:`UnitsError` for anything else."""
@@ -1216,8 +1261,7 @@ def load_mesh(
 
     path = Path(os.fspath(path))
     scale = unit_scale(units)
-    if not path.is_file():
-        raise DataNotFoundError(f"mesh file not found: {path}")
+    check_input_file(path, "mesh file")
     ext = path.suffix.lower()
     if ext not in (".obj", ".ply"):
         raise MeshError(
@@ -1267,6 +1311,7 @@ def load_mesh(
                 problem="corrupt_file",
             )
     v_mm = verts.astype(np.float64) * scale
+    check_finite_vertices(v_mm, source=f"{path}:")
     if check_size:
         check_plausible_size(v_mm, units, source=str(path), size_range=size_range)
     try:
@@ -1283,6 +1328,8 @@ def save_mesh(
 ) -> None:
     """Write a triangle mesh to OBJ or PLY, converting from mm to ``units``.
 
+    The file is written atomically (:mod:`jaxface.atomic`); vertices holding NaN/inf are
+    refused (:class:`MeshError`, ``problem="nonfinite_vertices"``) and nothing is written.
     Vertex and triangle order are kept. PLY is written by trimesh with float32 coordinates
     (relative precision ~6e-8, i.e. ~2e-5 mm on a head); OBJ with 10 decimals.
 
@@ -1308,6 +1355,12 @@ def save_mesh(
             )
         v, t = _as_vertices(mesh_or_vertices), _as_triangles(triangles)
     ext = path.suffix.lower()
+    if ext not in (".ply", ".obj"):
+        raise MeshError(
+            f"{path}: unsupported mesh format {ext!r}; use .obj or .ply.",
+            problem="unsupported_format",
+        )
+    check_finite_vertices(v, source=f"{path}: refusing to write the mesh:")
     tm = trimesh.Trimesh(
         vertices=np.array(v) / scale, faces=np.array(t), process=False, validate=False
     )
@@ -1315,14 +1368,9 @@ def save_mesh(
         data = trimesh.exchange.ply.export_ply(
             tm, encoding=encoding, vertex_normal=False, include_attributes=False
         )
-        path.write_bytes(data)
-    elif ext == ".obj":
+        write_bytes_atomic(path, data)
+    else:
         text = trimesh.exchange.obj.export_obj(
             tm, include_normals=False, include_color=False, include_texture=False, digits=10
         )
-        path.write_text(text)
-    else:
-        raise MeshError(
-            f"{path}: unsupported mesh format {ext!r}; use .obj or .ply.",
-            problem="unsupported_format",
-        )
+        write_text_atomic(path, text)

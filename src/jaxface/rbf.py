@@ -43,6 +43,7 @@ build-time code (mesh fitting, motion cloning) that solves many differently-size
 from __future__ import annotations
 
 import functools
+import math
 from typing import Literal
 
 import equinox as eqx
@@ -318,6 +319,24 @@ def find_duplicates(src, rtol: float = _DUPLICATE_RTOL) -> list[np.ndarray]:
     return groups
 
 
+def _check_params(reg, radius_scale) -> None:
+    """Refuse a negative or non-finite ridge ``reg`` and a non-positive ``radius_scale``
+    (concrete values; a traced ``reg`` is left alone)."""
+    for name, v, lo_ok in (("reg", reg, True), ("radius_scale", radius_scale, False)):
+        try:
+            x = float(v)
+        except (TypeError, jax.errors.ConcretizationTypeError):
+            continue
+        if not math.isfinite(x) or x < 0.0 or (x == 0.0 and not lo_ok):
+            need = ">= 0 (0 = interpolate exactly)" if lo_ok else "> 0"
+            raise RBFError(
+                f"{name} = {v!r}: must be a finite number {need}; a negative ridge makes the "
+                "kernel system indefinite or singular."
+                if lo_ok
+                else f"{name} = {v!r}: must be a finite number {need}."
+            )
+
+
 def _check_inputs(src_np: np.ndarray, dst_np: np.ndarray, kernel: str) -> None:
     if kernel not in KERNELS:
         raise RBFError(f"unknown RBF kernel {kernel!r}; choose one of {KERNELS}.")
@@ -452,6 +471,7 @@ def fit(
     """
     if kernel not in KERNELS:
         raise RBFError(f"unknown RBF kernel {kernel!r}; choose one of {KERNELS}.")
+    _check_params(reg, radius_scale)
     if solver not in ("solve", "lstsq"):
         raise RBFError(f"unknown solver {solver!r}; choose 'solve' or 'lstsq'.")
     src = jnp.asarray(src)
@@ -528,6 +548,7 @@ def fit_numpy(
     """
     import scipy.linalg
 
+    _check_params(reg, radius_scale)
     src = np.asarray(src, dtype=np.float64)
     dst = np.asarray(dst, dtype=np.float64)
     if validate:

@@ -728,9 +728,12 @@ def figure_views(
 def save_figure(fig, path, *, dpi: int | None = None, close: bool = False) -> Path:
     """Write a matplotlib figure (PNG/PDF/SVG by suffix), creating parent folders; ``close``
     also closes the figure (frees it in pyplot's figure manager)."""
+    from .atomic import atomic_path, ensure_out_dir
+
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=dpi or fig.dpi, facecolor="white")
+    ensure_out_dir(path.parent, "picture folder")
+    with atomic_path(path) as tmp:  # written whole or not at all
+        fig.savefig(tmp, dpi=dpi or fig.dpi, facecolor="white")
     if close:
         import matplotlib.pyplot as plt
 

@@ -17,7 +17,6 @@
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -32,6 +31,7 @@ from .anatomy.pictures import (
     muscle_map_picture,
 )
 from .anatomy.rig import build_rig, synthesize
+from .atomic import write_json_atomic, write_text_atomic
 from .fit.options import FitOptions
 from .fit.pipeline import SubjectOptions, fit_expressions, subject_from_rig
 from .head import generic_head, save_head
@@ -138,8 +138,8 @@ def run_showcase(
     timings["total_s"] = time.perf_counter() - t_all
     report["timings"] = timings
     report["machine"] = {"jax": jax.__version__, "backend": jax.default_backend()}
-    (out / "report.json").write_text(json.dumps(report, indent=1))
-    (out / "report.md").write_text(_markdown(report))
+    write_json_atomic(out / "report.json", report)
+    write_text_atomic(out / "report.md", _markdown(report))
     return report
 
 

@@ -30,6 +30,7 @@ import numpy as np
 from .. import pbd
 from ..errors import RigError
 from ..mesh import TriMesh
+from ..validate import checked_build, checked_controls
 from .frame import face_frame
 from .jaw import JawModel, JawPose
 from .muscle_map import MuscleSpec, load_muscle_map, place_muscles, placement_registry
@@ -258,6 +259,7 @@ def _as_mesh(skin) -> TriMesh:
     )
 
 
+@checked_build  # NaN, huge or unwelded skins refused (jaxface.validate)
 def build_rig(
     skin,
     landmarks=None,
@@ -625,6 +627,7 @@ def equilibrium_gap(
     return jnp.sqrt(jnp.sum((x - st.skin) ** 2, axis=1))
 
 
+@checked_controls  # NaN / out-of-range controls refused (jaxface.validate)
 @eqx.filter_jit
 def synthesize(rig: Rig, activations, jaw: JawPose | None = None, cheek_puff=0.0):
     """Synthesize the face for muscle activations and a jaw pose (quasi-static).

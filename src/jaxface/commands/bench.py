@@ -267,8 +267,11 @@ def register(app: typer.Typer) -> None:
             )
         console.print(table)
         if json_out is not None:
-            json_out.parent.mkdir(parents=True, exist_ok=True)
-            json_out.write_text(
+            from ..atomic import ensure_out_dir, write_text_atomic
+
+            ensure_out_dir(json_out.parent, "--json's folder")
+            write_text_atomic(
+                json_out,
                 json.dumps(
                     dict(
                         folder=str(folder),
@@ -276,7 +279,7 @@ def register(app: typer.Typer) -> None:
                         runs=[{k: v for k, v in r.items() if k != "output"} for r in runs],
                     ),
                     indent=1,
-                )
+                ),
             )
         failed = [r["name"] for r in runs if r["status"] != "ok"]
         if failed:

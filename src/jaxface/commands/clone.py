@@ -18,7 +18,6 @@ per-target displacement statistics, in mm).
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 from typing import List  # noqa: UP035 (typer options keep List[str], see UP006 below)
@@ -34,7 +33,13 @@ _MESHES = (".ply", ".obj")
 
 
 def load_face(
-    path: Path, units: str, landmarks: Path | None, what: str, *, allow_scan: bool = False
+    path: Path,
+    units: str,
+    landmarks: Path | None,
+    what: str,
+    *,
+    allow_scan: bool = False,
+    clean: bool = False,
 ):
     """A face mesh (mm) and its landmarks (mm) from files.
 
@@ -43,17 +48,20 @@ def load_face(
         units: unit of the mesh and landmark coordinates.
         landmarks: ``.lm3`` path, or ``None`` for the one beside ``path``.
         what: name used in error messages ("source neutral", "target").
+        clean: weld duplicate vertices, drop degenerate/repeated triangles, refuse meshes
+            above :data:`jaxface.hygiene.MAX_RIG_VERTICES` (:func:`jaxface.hygiene.clean_mesh`;
+            a warning on stderr says what changed). For a face a rig is built on; not for
+            morph-target sources, whose vertex ids must stay.
 
     Returns:
         ``(TriMesh, Landmarks)``.
     """
-    from ..errors import DataNotFoundError, LandmarkError, ScanFormatError
+    from ..errors import LandmarkError, ScanFormatError
     from ..landmarks import read_lm3
-    from ..mesh import load_mesh, unit_scale
+    from ..mesh import check_input_file, load_mesh, unit_scale
 
     path = Path(path)
-    if not path.is_file():
-        raise DataNotFoundError(f"{what} file not found: {path}")
+    check_input_file(path, f"{what} file")
     ext = path.suffix.lower()
     if ext == ".bnt" and allow_scan:
         from ..io import load_scan
@@ -67,10 +75,17 @@ def load_face(
         raise ScanFormatError(
             f"{what} {path}: unsupported format {ext or '(no suffix)'!r}; use {allowed}."
         )
+    if clean:
+        from ..cli import console
+        from ..hygiene import clean_mesh
+
+        mesh, report = clean_mesh(mesh, source=f"{what} {path}")
+        if report.changed:
+            console.print(f"[yellow]warning:[/] {what} {path}: {report.describe()}.", markup=True)
     lm_path = Path(landmarks) if landmarks is not None else path.with_suffix(".lm3")
+    if landmarks is not None:
+        check_input_file(lm_path, f"{what} landmark file")
     if not lm_path.is_file():
-        if landmarks is not None:
-            raise DataNotFoundError(f"{what} landmark file not found: {lm_path}")
         opt = "--source-landmarks" if what.startswith("source") else "--target-landmarks"
         raise LandmarkError(
             f"the {what} {path} has no landmarks: {lm_path} does not exist. Give a "
@@ -128,7 +143,7 @@ def collect_targets(items: list[Path], exclude: tuple[Path, ...] = ()) -> list[P
 
 def register(app: typer.Typer) -> None:
     """Add ``jaxface clone`` to ``app``."""
-    from ..cli import _EPILOG, console, handle_errors, status_steps
+    from ..cli import _EPILOG, _check_out_dir, console, handle_errors, status_steps
 
     @app.command(epilog=_EPILOG)
     @handle_errors
@@ -148,7 +163,12 @@ def register(app: typer.Typer) -> None:
             ..., "--target", "-T", help="Target neutral face (.ply/.obj, or a .bnt range scan)."
         ),
         out: Path = typer.Option(
-            ..., "--out", "-o", file_okay=False, help="Output folder (created if missing)."
+            ...,
+            "--out",
+            "-o",
+            file_okay=False,
+            callback=_check_out_dir,
+            help="Output folder (created if missing).",
         ),
         source_landmarks: Path | None = typer.Option(  # noqa: UP007
             None, "--source-landmarks", help="Source .lm3 (default: beside the source neutral)."
@@ -224,6 +244,7 @@ def register(app: typer.Typer) -> None:
         )
 
         from .. import clone as cl
+        from ..atomic import ensure_out_dir, write_json_atomic
         from ..errors import LandmarkError, MeshError, ScanFormatError
         from ..mesh import load_mesh, save_mesh, unit_scale
 
@@ -312,7 +333,7 @@ def register(app: typer.Typer) -> None:
                 tgt.vertices, tgt.vertex_normals, fit.ray_length, fit.deformed, src.triangles
             )
             t2 = time.perf_counter()
-        out.mkdir(parents=True, exist_ok=True)
+        ensure_out_dir(out)
         stats = []
         with new_progress() as progress:
             task = progress.add_task("cloning targets", total=len(files), item="")
@@ -371,7 +392,7 @@ def register(app: typer.Typer) -> None:
             ),
             targets=stats,
         )
-        (out / "clone.json").write_text(json.dumps(report, indent=1, default=float))
+        write_json_atomic(out / "clone.json", report, default=float)
         if quiet:
             return
         from rich.table import Table

@@ -98,15 +98,15 @@ def convert_file(
     Returns:
         a summary dict (kinds, counts, grid shape, files written).
     """
-    from ..errors import DataNotFoundError, ScanFormatError
+    from ..atomic import ensure_out_dir
+    from ..errors import ScanFormatError
     from ..io.bosphorus import DEFAULT_MAX_EDGE_FACTOR, read_bnt, write_bnt
     from ..landmarks import read_lm3, write_lm3
-    from ..mesh import load_mesh, save_mesh, unit_scale
+    from ..mesh import check_input_file, load_mesh, save_mesh, unit_scale
 
     src, dst = Path(src), Path(dst)
     s_in, s_out = unit_scale(in_units), unit_scale(out_units)
-    if not src.is_file():
-        raise DataNotFoundError(f"input file not found: {src}")
+    check_input_file(src, "input file")
     k_in, k_out = _kind(src, "input"), _kind(dst, "output")
     if dst.resolve() == src.resolve():
         raise ScanFormatError(f"output {dst} is the input file; choose another output path.")
@@ -127,8 +127,7 @@ def convert_file(
         lm_path = _lm3_beside(src)
     elif landmarks is not False:
         lm_path = Path(landmarks)
-        if not lm_path.is_file():
-            raise DataNotFoundError(f"landmark file not found: {lm_path}")
+        check_input_file(lm_path, "landmark file")
     lm = read_lm3(lm_path).transformed(scale=s_in) if lm_path is not None else None  # mm
 
     lm_out = dst.with_suffix(".lm3")
@@ -138,7 +137,7 @@ def convert_file(
             f"the output landmarks {lm_out} would overwrite the input landmarks "
             f"{lm_path} in other units; write the output to another folder or stem."
         )
-    dst.parent.mkdir(parents=True, exist_ok=True)
+    ensure_out_dir(dst.parent, "OUT's folder")
     if k_in == "bnt":
         scan = read_bnt(src, units=in_units, check_size=check_size)
         assert scan.shape is not None  # a .bnt is a grid scan

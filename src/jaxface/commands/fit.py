@@ -10,7 +10,8 @@ Contract (other tools call it; keep it stable)::
 Landmark files default to the scan path with suffix ``.lm3``. Several ``--scan`` options fit a
 batch (solved together in one compiled call) with a progress bar. Per scan it writes
 ``DIR/<scan-stem>.json`` (keys: ``activations``, ``au_intensities``, ``au_motion_mm``, ``au_sparse``, ``jaw``, ``rigid``,
-``metrics``, ``baselines``, ``solver``, ``frame``; see :class:`jaxface.fit.pipeline.ExpressionFit`)
+``metrics``, ``baselines``, ``solver``, ``frame``, ``quality``: coverage, identity, noise
+floor and warnings, :mod:`jaxface.fit.quality`; see :class:`jaxface.fit.pipeline.ExpressionFit`)
 and ``DIR/<scan-stem>.fitted.ply`` (the fitted skin in the scan's own frame, mm); with
 ``--pictures`` also ``DIR/<scan-stem>.fit.png`` (scan, before, fit, error heat map).
 
@@ -33,16 +34,17 @@ __all__ = ["register", "run_fit"]
 
 def _load(path: Path, landmarks: Path | None, what: str):
     """Load a scan with its landmarks (explicit file, or the .lm3 beside it)."""
-    from ..errors import DataNotFoundError, LandmarkError
+    from ..errors import LandmarkError
     from ..io import load_scan
+    from ..mesh import check_input_file
 
-    if not path.is_file():
-        raise DataNotFoundError(f"{what} file not found: {path}")
-    if landmarks is not None and not landmarks.is_file():
-        raise DataNotFoundError(f"landmark file of the {what} not found: {landmarks}")
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
+    check_input_file(path, f"{what} file")
+    if landmarks is not None:
+        check_input_file(landmarks, f"landmark file of the {what}")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
         scan = load_scan(path, landmarks=landmarks)
+    _show_label_warnings(caught)
     if scan.landmarks is None:
         raise LandmarkError(
             f"no landmarks for the {what} {path}: expected {path.with_suffix('.lm3')} beside it, or "
@@ -51,17 +53,27 @@ def _load(path: Path, landmarks: Path | None, what: str):
     return scan
 
 
+def _show_label_warnings(caught) -> None:
+    """Print the landmark-label warnings of a load (misspelled or unknown labels) on stderr;
+    the other load warnings (missing ear lobes and the like) stay quiet."""
+    from ..cli import console
+    from ..landmarks import LandmarkLabelWarning
+
+    for w in caught:
+        if issubclass(w.category, LandmarkLabelWarning):
+            console.print(f"[yellow]warning:[/] {w.message}", markup=True, soft_wrap=True)
+
+
 def _template(template: Path | None, template_landmarks: Path | None):
-    from ..errors import DataNotFoundError, LandmarkError
+    from ..errors import LandmarkError
     from ..landmarks import read_lm3
-    from ..mesh import load_mesh
+    from ..mesh import check_input_file, load_mesh
 
     if template is None:
         if template_landmarks is not None:
             raise LandmarkError("--template-landmarks needs --template (the mesh they belong to).")
         return None, None
-    if not template.is_file():
-        raise DataNotFoundError(f"template mesh not found: {template}")
+    check_input_file(template, "template mesh")
     lm = template_landmarks if template_landmarks is not None else template.with_suffix(".lm3")
     if not lm.is_file():
         raise LandmarkError(
@@ -99,6 +111,7 @@ def run_fit(
         on_written: optional ``(ExpressionFit, files) -> None`` called after each scan's files
             are written.
     """
+    from ..atomic import ensure_out_dir
     from ..errors import FitError, LandmarkError
     from ..fit.options import FitOptions
     from ..fit.pipeline import SubjectOptions, _stem, fit_expressions, prepare_subject
@@ -112,6 +125,7 @@ def run_fit(
             f"{len(scan_landmarks)} --scan-landmarks for {len(scans)} --scan: give one per scan, in the "
             "same order (or none, to use the .lm3 files beside the scans)."
         )
+    ensure_out_dir(out)  # before the minute-long build: a bad --out fails at once
     step = on_step or (lambda s: None)
     step("reading the scans")
     n_scan = _load(neutral, neutral_landmarks, "neutral scan")
@@ -134,7 +148,6 @@ def run_fit(
     subject = prepare_subject(
         n_scan, template=tmesh, template_landmarks=tlm, options=sopt, progress=progress
     )
-    out.mkdir(parents=True, exist_ok=True)
     step(f"fitting {len(loaded)} scan(s)")
     results = fit_expressions(
         subject,
@@ -143,6 +156,7 @@ def run_fit(
         progress=progress,
         batch_size=batch_size,
         on_result=lambda r: _write(r, out, pictures, on_written),
+        noise_floor=True,  # one self-fit of the neutral: the AU readout's noise floor
     )
     return results
 
@@ -162,7 +176,7 @@ class RestartWhen(str, Enum):
 
 def register(app: typer.Typer) -> None:
     """Add ``jaxface fit`` to ``app``."""
-    from ..cli import _EPILOG, console, handle_errors
+    from ..cli import _EPILOG, _check_out_dir, console, handle_errors
 
     @app.command(epilog=_EPILOG)
     @handle_errors
@@ -174,7 +188,12 @@ def register(app: typer.Typer) -> None:
             ..., "--scan", "-s", help="Expression scan(s) of the same subject; repeat for a batch."
         ),
         out: Path = typer.Option(
-            ..., "--out", "-o", file_okay=False, help="Output folder (created if missing)."
+            ...,
+            "--out",
+            "-o",
+            file_okay=False,
+            callback=_check_out_dir,
+            help="Output folder (created if missing).",
         ),
         neutral_landmarks: Path | None = typer.Option(  # noqa: UP007
             None, "--neutral-landmarks", help="Neutral .lm3 (default: beside the neutral scan)."
@@ -353,6 +372,10 @@ def register(app: typer.Typer) -> None:
                 on_step=on_step,
                 on_written=done,
             )
+        for r in results:  # shown even with --quiet: the result may be meaningless
+            q = getattr(r, "quality", None)
+            for w in q.warnings if q is not None else ():
+                console.print(f"[yellow]warning:[/] {r.stem}: {w}", markup=True, soft_wrap=True)
         if quiet:
             return
         table = Table(

@@ -19,7 +19,6 @@ expression ``<name>``:
 
 from __future__ import annotations
 
-import json
 import re
 import time
 from pathlib import Path
@@ -82,13 +81,13 @@ def synthesize_files(
     import jax.numpy as jnp
 
     from ..anatomy.rig import synthesize
+    from ..atomic import ensure_out_dir, write_json_atomic
     from ..facs import au_intensities
     from ..io.scanner import SkinLandmarks
     from ..landmarks import Landmarks, write_lm3
     from ..mesh import save_mesh, unit_scale
 
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = ensure_out_dir(Path(out))
     rest = np.asarray(rig.rest)
     tris = np.asarray(rig.triangles)
     bound = SkinLandmarks.of_rig(rig)
@@ -134,7 +133,7 @@ def synthesize_files(
         if pictures:
             summary["files"]["picture"] = f"{name}.png"
             _picture(out / f"{name}.png", rig, rest, x, name)
-        (out / f"{name}.json").write_text(json.dumps(summary, indent=1))
+        write_json_atomic(out / f"{name}.json", summary)
         summaries.append(summary)
     return summaries
 
@@ -145,7 +144,7 @@ def _picture(path, rig, rest, x, title):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ..render import Layer, rasterize
+    from ..render import Layer, rasterize, save_figure
 
     face = rig.info.frame
     lo = face.to_world([-85.0, -125.0, -120.0])
@@ -165,7 +164,7 @@ def _picture(path, rig, rest, x, title):
         ax.set_title(t, fontsize=10)
         ax.axis("off")
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    save_figure(fig, path, dpi=100)
     plt.close(fig)
 
 
@@ -222,13 +221,18 @@ def parse_sweeps(text: str) -> tuple[int, int, float]:
 
 def register(app: typer.Typer) -> None:
     """Add ``jaxface synth`` to ``app``."""
-    from ..cli import _EPILOG, console, handle_errors, status_steps
+    from ..cli import _EPILOG, _check_out_dir, console, handle_errors, status_steps
 
     @app.command(epilog=_EPILOG)
     @handle_errors
     def synth(
         out: Path = typer.Option(
-            ..., "--out", "-o", file_okay=False, help="Output folder (created if missing)."
+            ...,
+            "--out",
+            "-o",
+            file_okay=False,
+            callback=_check_out_dir,
+            help="Output folder (created if missing).",
         ),
         emotion: List[str] = typer.Option(  # noqa: UP006
             [],
@@ -348,6 +352,8 @@ def register(app: typer.Typer) -> None:
                         )
                     emotions.append(item)
         aus = parse_aus([s for a in au for s in a.split(",") if s.strip()])
+        parse_muscles(muscle, [str(m).partition("=")[0].strip() for m in muscle])  # values
+        # are checked before the minute-long rig build; the names once the rig is built
         jaw_given = any(v != 0.0 for v in (jaw_pitch, jaw_yaw, jaw_protrusion))
         if not (emotions or aus or muscle or jaw_given or list_controls or compare_backends):
             raise RigError(
@@ -364,7 +370,7 @@ def register(app: typer.Typer) -> None:
             else:
                 from .clone import load_face
 
-                m, lm = load_face(mesh, units.value, landmarks, "face mesh")
+                m, lm = load_face(mesh, units.value, landmarks, "face mesh", clean=True)
                 rig_args = (m, lm)
             step(f"building the {backend} rig (skull, jaw, muscles)")
             rig = build_rig(*rig_args, backend=backend)

@@ -24,7 +24,6 @@ before/after picture); the JSON layout is the ``jaxface fit`` contract.
 
 from __future__ import annotations
 
-import json
 import math
 import time
 import warnings
@@ -38,6 +37,7 @@ import numpy as np
 from .._parallel import thread_map
 from ..anatomy.jaw import JawPose
 from ..anatomy.rig import build_rig
+from ..atomic import ensure_out_dir, write_json_atomic
 from ..errors import FitError, LandmarkError
 from ..facs import au_intensities
 from ..head import generic_head
@@ -55,6 +55,7 @@ from .forward import ForwardModel
 from .metrics import SurfaceIndex, fit_metrics, landmark_dict
 from .options import FitOptions
 from .params import rigid_numpy
+from .quality import assess, check_mirror, check_usable, coverage
 from .reduced import ResponseModel, build_response_model
 from .register import Registration, Template, register_template
 from .solve import PointFit, fit_points
@@ -82,6 +83,7 @@ JSON_KEYS = (
     "baselines",
     "solver",
     "frame",
+    "quality",
 )
 
 
@@ -127,6 +129,9 @@ class Subject:
         neutral_index: :class:`jaxface.fit.metrics.SurfaceIndex` of the neutral scan.
         face_index: :class:`SurfaceIndex` of the registered neutral's face region.
         timings: seconds per build step.
+        au_noise_floor: AU -> intensity of the self-fit (the neutral fitted to itself), the
+            AU readout's noise floor (:mod:`jaxface.fit.quality`); set by the first
+            :func:`fit_expressions` call with ``noise_floor=True``.
     """
 
     neutral: Any
@@ -143,6 +148,7 @@ class Subject:
     face_index: Any
     backend: str
     timings: dict = field(default_factory=dict)
+    au_noise_floor: dict | None = None
 
     @property
     def muscle_names(self) -> tuple[str, ...]:
@@ -518,6 +524,7 @@ class ExpressionFit:
     face_mask: np.ndarray | None = None
     au_sparse: dict = field(default_factory=dict)
     au_sparse_misfit_mm: float | None = None
+    quality: Any = None
 
     @property
     def status(self) -> str:
@@ -605,6 +612,7 @@ class ExpressionFit:
             "baselines": {k: v.to_dict() for k, v in self.baselines.items()},
             "solver": self.solver_dict(),
             "frame": self.frame_dict(),
+            "quality": None if self.quality is None else self.quality.to_dict(),
         }
 
     def strongest_aus(
@@ -628,11 +636,10 @@ class ExpressionFit:
     def write(self, out_dir, *, pictures: bool = False) -> dict[str, Path]:
         """Write ``<stem>.json``, ``<stem>.fitted.ply`` (and ``<stem>.fit.png``). Returns the
         paths."""
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
+        out = ensure_out_dir(out_dir)
         files = {}
         p = out / f"{self.stem}.json"
-        p.write_text(json.dumps(_jsonable(self.to_dict()), indent=1))
+        write_json_atomic(p, _jsonable(self.to_dict()))
         files["json"] = p
         m = out / f"{self.stem}.fitted.ply"
         save_mesh(m, self.fitted, units="mm")
@@ -740,6 +747,7 @@ def fit_expressions(
     progress: Callable[[str], None] | None = None,
     batch_size: int | None = None,
     on_result: Callable[[ExpressionFit], None] | None = None,
+    noise_floor: bool = False,
 ) -> list[ExpressionFit]:
     """Fit a batch of expression scans of the subject.
 
@@ -757,6 +765,10 @@ def fit_expressions(
             (README, "A batch fits its scans two at a time"), and each scan gets the fit it
             gets alone.
         on_result: called with each finished :class:`ExpressionFit` (e.g. to write it).
+        noise_floor: fit the subject's neutral to itself once (stored in
+            ``subject.au_noise_floor``, one more fit per subject) for the AU readout's noise
+            floor in each result's ``quality`` (``jaxface fit`` does); False (default): no
+            noise check unless ``subject.au_noise_floor`` is already set.
 
     Returns:
         one :class:`ExpressionFit` per scan, in order.
@@ -793,8 +805,19 @@ def fit_expressions(
     reg = subject.registration
     tris = subject.triangles
 
+    hands_of: dict[int, tuple] = {}  # alignment -> landmark handedness (neutral, scan)
+    index_of: dict[int, Any] = {}  # alignment -> SurfaceIndex of its scan
+
     def prepare(s):
+        hands = check_mirror(subject.neutral.landmarks, s.landmarks, f"the scan {_stem(s)}")
         al = align_scans(s, subject.neutral, fixed_index=subject.neutral_index)
+        index = SurfaceIndex(*s.mesh_arrays()[:2])
+        check_usable(
+            coverage(al.transform.inverse().apply(reg.vertices), reg.face_mask, index),
+            f"the scan {_stem(s)}",
+        )
+        hands_of[id(al)] = hands
+        index_of[id(al)] = index
         return al, scan_fit_inputs(
             subject,
             s,
@@ -828,6 +851,16 @@ def fit_expressions(
         aus = au_intensities(
             f.activations, subject.muscle_names, JawPose(float(je[0]), float(je[1]), float(je[2]))
         )
+        quality = assess(
+            fitted_vertices=fitted.vertices,
+            face_mask=reg.face_mask,
+            neutral_landmarks=subject.neutral.landmarks,
+            scan_landmarks=s.landmarks,
+            scan_index=index_of[id(al)],
+            au_intensities=aus,
+            noise_floor=subject.au_noise_floor,
+            hands=hands_of.get(id(al), (None, None)),
+        )
         notes = list(al.notes)
         if f.status != "successful":
             notes.append(
@@ -853,8 +886,27 @@ def fit_expressions(
             options=opt,
             notes=notes,
             face_mask=np.asarray(reg.face_mask, bool),
+            quality=quality,
         )
 
+    if noise_floor and loaded and subject.au_noise_floor is None:
+        say("fitting the neutral to itself (the AU readout's noise floor)")
+        _, inp_n = prepare(subject.neutral)
+        (f_n,) = fit_points(
+            subject.forward,
+            subject.response,
+            subject.fit_ids,
+            subject.face_triangles,
+            [inp_n],
+            subject.landmark_tri,
+            subject.landmark_bary,
+            opt,
+            progress=say,
+        )
+        jn = f_n.jaw_effective
+        subject.au_noise_floor = au_intensities(
+            f_n.activations, subject.muscle_names, JawPose(float(jn[0]), float(jn[1]), float(jn[2]))
+        )
     for b0 in range(0, len(loaded), bs):
         batch = loaded[b0 : b0 + bs]
         say(

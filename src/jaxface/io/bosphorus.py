@@ -53,9 +53,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import DataNotFoundError, LandmarkError, MeshError, ScanFormatError
+from ..atomic import write_bytes_atomic, write_text_atomic
+from ..errors import LandmarkError, MeshError, ScanFormatError
 from ..landmarks import FACE_LABELS, MIRROR_PAIRS, Landmarks, canonical_label, read_lm3
-from ..mesh import TriMesh, check_plausible_size, load_mesh, unit_scale
+from ..mesh import TriMesh, check_input_file, check_plausible_size, load_mesh, unit_scale
 
 __all__ = [
     "Scan",
@@ -337,8 +338,7 @@ def read_lm2(path: str | Path) -> ImageLandmarks:
             coordinates, unparsable or non-finite coordinates (message names the file and line).
     """
     path = Path(path)
-    if not path.is_file():
-        raise DataNotFoundError(f"landmark file not found: {path}")
+    check_input_file(path, "landmark file")
     raw = path.read_text(encoding="utf-8", errors="replace").splitlines()
     lines = [(i + 1, ln.strip()) for i, ln in enumerate(raw)]
     lines = [(i, ln) for i, ln in lines if ln and not ln.startswith("#")]
@@ -403,7 +403,7 @@ def write_lm2(
     out += list(landmarks.names)
     out.append("2D Image coordinates:")
     out += [f"{x:.3f} {y:.3f}" for x, y in landmarks.pixels]
-    Path(path).write_text("\n".join(out) + "\n", encoding="utf-8")
+    write_text_atomic(path, "\n".join(out) + "\n")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -681,8 +681,7 @@ def read_bnt(path: str | Path, *, units: str = "mm", check_size: bool = True) ->
             points; the message names the file and the problem.
     """
     path = Path(path)
-    if not path.is_file():
-        raise DataNotFoundError(f"scan file not found: {path}")
+    check_input_file(path, "scan file")
     scale = _unit_scale(units)
     data = path.read_bytes()
 
@@ -779,12 +778,26 @@ def write_bnt(path: str | Path, scan: Scan, *, image_name: str | None = None) ->
     xyz[scan.valid] = scan.points
     uv = scan.uv_grid if scan.uv_grid is not None else np.zeros((nrows, ncols, 2))
     planes = np.concatenate([np.moveaxis(xyz, -1, 0), np.moveaxis(uv, -1, 0)], axis=0)
-    with open(path, "wb") as f:
-        f.write(_BNT_HEADER.pack(nrows, ncols, float(scan.zmin)))
-        f.write(_U16.pack(len(name)))
-        f.write(name)
-        f.write(_U32.pack(planes.size))
-        f.write(np.ascontiguousarray(planes, dtype="<f8").tobytes())
+    pts = np.asarray(scan.points, dtype=np.float64)
+    bad = np.flatnonzero(~np.all(np.isfinite(pts), axis=1)) if pts.size else []
+    if len(bad) or not np.isfinite(scan.zmin):
+        raise ScanFormatError(
+            f"{path}: refusing to write a .bnt with {len(bad)} non-finite point(s)"
+            + (f" (first: point {int(bad[0])})" if len(bad) else " (zmin is not finite)")
+            + "; nothing was written."
+        )
+    write_bytes_atomic(
+        path,
+        b"".join(
+            (
+                _BNT_HEADER.pack(nrows, ncols, float(scan.zmin)),
+                _U16.pack(len(name)),
+                name,
+                _U32.pack(planes.size),
+                np.ascontiguousarray(planes, dtype="<f8").tobytes(),
+            )
+        ),
+    )
 
 
 def _unit_scale(units: str) -> float:
@@ -936,8 +949,7 @@ def load_scan(
         :class:`Scan` in mm.
     """
     path = Path(path)
-    if not path.is_file():
-        raise DataNotFoundError(f"scan file not found: {path}")
+    check_input_file(path, "scan file")
     ext = path.suffix.lower()
     if ext == ".bnt":
         scan = read_bnt(path, units=units, check_size=check_size)
@@ -973,8 +985,7 @@ def load_scan(
         lm_path = next((c for c in cands if c.is_file()), None)
     elif landmarks is not False:
         lm_path = Path(landmarks)
-        if not lm_path.is_file():
-            raise DataNotFoundError(f"landmark file not found: {lm_path}")
+        check_input_file(lm_path, "landmark file")
     if lm_path is not None:
         lm = read_lm3(lm_path)
         scale = _unit_scale(units)
