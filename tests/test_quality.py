@@ -55,7 +55,7 @@ def _mirrored(scan):
 @pytest.fixture(scope="module")
 def fitted():
     from jaxface.fit.pipeline import SubjectOptions, fit_expressions, prepare_subject
-    from jaxface.fit.solve import FitOptions
+    from jaxface.fit.options import FitOptions
     from jaxface.testing import shared_path
 
     root = shared_path("data", "bosphorus_style")
