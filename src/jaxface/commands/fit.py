@@ -10,7 +10,7 @@ Contract (other tools call it; keep it stable)::
 Landmark files default to the scan path with suffix ``.lm3``. Several ``--scan`` options fit a
 batch (solved together in one compiled call) with a progress bar. Per scan it writes
 ``DIR/<scan-stem>.json`` (keys: ``activations``, ``au_intensities``, ``au_motion_mm``, ``au_sparse``, ``jaw``, ``rigid``,
-``metrics``, ``baselines``, ``solver``, ``frame``; see :class:`jaxface.fit.pipeline.ExpressionFit`)
+``metrics``, ``baselines``, ``solver``, ``frame``, ``arkit``, ``arkit_detail``; see :class:`jaxface.fit.pipeline.ExpressionFit`)
 and ``DIR/<scan-stem>.fitted.ply`` (the fitted skin in the scan's own frame, mm); with
 ``--pictures`` also ``DIR/<scan-stem>.fit.png`` (scan, before, fit, error heat map).
 
@@ -88,6 +88,7 @@ def run_fit(
     progress=None,
     on_step=None,
     on_written=None,
+    arkit="auto",
 ) -> list:
     """The library behind ``jaxface fit``: fit ``scans`` of the subject of ``neutral`` and
     write the results into ``out``. Returns the :class:`~jaxface.fit.pipeline.ExpressionFit`
@@ -98,6 +99,8 @@ def run_fit(
         on_step: optional ``(text) -> None`` called before each major step.
         on_written: optional ``(ExpressionFit, files) -> None`` called after each scan's files
             are written.
+        arkit: ICT data of the ARKit readout (``"auto"``, a path, None = off; see
+            :func:`jaxface.fit.pipeline.fit_expressions`).
     """
     from ..errors import FitError, LandmarkError
     from ..fit.pipeline import SubjectOptions, _stem, fit_expressions, prepare_subject
@@ -143,6 +146,7 @@ def run_fit(
         progress=progress,
         batch_size=batch_size,
         on_result=lambda r: _write(r, out, pictures, on_written),
+        arkit=arkit,
     )
     return results
 
@@ -264,6 +268,14 @@ def register(app: typer.Typer) -> None:
             min=1,
             help="Scans fitted together (one after the other on the CPU, one vmap on a GPU); default all.",
         ),
+        ict: Path | None = typer.Option(  # noqa: UP007
+            None,
+            "--ict",
+            help="ICT-FaceKit ict_face.npz for the ARKit-52 coefficients (key 'arkit'; default "
+            "$JAXFACE_ICT or $JAXFACE_SHARED/data/ict/ict_face.npz; without it the JSON says why "
+            "'arkit' is null).",
+        ),
+        no_arkit: bool = typer.Option(False, "--no-arkit", help="Skip the ARKit readout."),
         quiet: bool = typer.Option(False, "--quiet", "-q", help="Only print errors."),
     ):
         """Fit muscle activations, jaw pose and a rigid correction to expression scans of one
@@ -352,6 +364,7 @@ def register(app: typer.Typer) -> None:
                 progress=on_progress,
                 on_step=on_step,
                 on_written=done,
+                arkit=None if no_arkit else (ict if ict is not None else "auto"),
             )
         if quiet:
             return

@@ -68,6 +68,8 @@ JSON_KEYS = (
     "baselines",
     "solver",
     "frame",
+    "arkit",
+    "arkit_detail",
 )
 
 
@@ -505,6 +507,9 @@ class ExpressionFit:
         metrics: :class:`jaxface.fit.metrics.FitMetrics` of the fit; baselines: ``{"B0":
             FitMetrics, "B1": FitMetrics}``; baseline_meshes: ``{"B0": TriMesh, "B1": TriMesh}``.
         muscle_names: the rig's control order.
+        arkit: ARKit-52 name -> coefficient in [0, 1] read from the fitted skin motion
+            (:mod:`jaxface.interop.arkit`), or None when unavailable; arkit_detail: each
+            coefficient's contribution (mm), the residual (mm), or the reason it is missing.
     """
 
     stem: str
@@ -526,6 +531,8 @@ class ExpressionFit:
     face_mask: np.ndarray | None = None
     au_sparse: dict = field(default_factory=dict)
     au_sparse_misfit_mm: float | None = None
+    arkit: dict | None = None
+    arkit_detail: dict = field(default_factory=dict)
 
     @property
     def status(self) -> str:
@@ -615,6 +622,8 @@ class ExpressionFit:
             "baselines": {k: v.to_dict() for k, v in self.baselines.items()},
             "solver": self.solver_dict(),
             "frame": self.frame_dict(),
+            "arkit": None if self.arkit is None else {k: float(v) for k, v in self.arkit.items()},
+            "arkit_detail": dict(self.arkit_detail),
         }
 
     def strongest_aus(
@@ -753,6 +762,7 @@ def fit_expressions(
     progress: Callable[[str], None] | None = None,
     batch_size: int | None = None,
     on_result: Callable[[ExpressionFit], None] | None = None,
+    arkit: Any = "auto",
 ) -> list[ExpressionFit]:
     """Fit a batch of expression scans of the subject.
 
@@ -770,6 +780,9 @@ def fit_expressions(
             (README, "A batch fits its scans two at a time"), and each scan gets the fit it
             gets alone.
         on_result: called with each finished :class:`ExpressionFit` (e.g. to write it).
+        arkit: the ARKit readout's ICT data: ``"auto"`` (``$JAXFACE_ICT`` or the shared
+            folder), a path to ``ict_face.npz``, an ``ArkitBasis``, or None (off);
+            :func:`jaxface.interop.arkit.readout_for_subject`.
 
     Returns:
         one :class:`ExpressionFit` per scan, in order.
@@ -780,6 +793,7 @@ def fit_expressions(
     from .._parallel import thread_map
     from ..anatomy.jaw import JawPose
     from ..facs import au_intensities
+    from ..interop.arkit import readout_for_subject
     from ..io import load_scan
     from ..mesh import TriMesh
     from .align import align_scans
@@ -815,6 +829,7 @@ def fit_expressions(
     )  # the sparse AU readout's, once per call
     reg = subject.registration
     tris = subject.triangles
+    readout = readout_for_subject(subject, arkit) if loaded else None
 
     def prepare(s):
         al = align_scans(s, subject.neutral, fixed_index=subject.neutral_index)
@@ -847,6 +862,7 @@ def fit_expressions(
                 fitted_landmarks=subject.landmarks_on(mesh.vertices),
                 scan_landmarks=s.landmarks,
             )
+        ak, ak_detail = readout(f.skin) if readout is not None else (None, {})
         je = f.jaw_effective
         aus = au_intensities(
             f.activations, subject.muscle_names, JawPose(float(je[0]), float(je[1]), float(je[2]))
@@ -876,6 +892,8 @@ def fit_expressions(
             options=opt,
             notes=notes,
             face_mask=np.asarray(reg.face_mask, bool),
+            arkit=ak,
+            arkit_detail=ak_detail,
         )
 
     for b0 in range(0, len(loaded), bs):
