@@ -51,7 +51,7 @@ def _landmark_motion(reg, neutral, scan, transform):
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
     ap.add_argument("--subjects", default="bs900,bs901")
     ap.add_argument("--codes", default="", help="comma-separated codes (default: all)")
     ap.add_argument("--iterations", type=int, default=3, help="clone refinement iterations")

@@ -158,6 +158,7 @@ def test_scan_icp_recovers_known_coefficients():
 
 def test_readout_without_ict_data_says_why(monkeypatch, tmp_path):
     V, F, _ = _sphere_basis()
+
     class Subject:  # the attributes readout_for_subject reads from a fit Subject
         forward = SimpleNamespace(rest=V)
         triangles = F

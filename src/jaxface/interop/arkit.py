@@ -34,6 +34,7 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy.optimize import lsq_linear
@@ -683,7 +684,7 @@ class ArkitReadout:
 _READOUTS: dict[tuple[int, str], ArkitReadout] = {}
 
 
-def readout_for_subject(subject, ict="auto") -> ArkitReadout:
+def readout_for_subject(subject, ict: Any = "auto") -> ArkitReadout:
     """The :class:`ArkitReadout` of a :class:`jaxface.fit.pipeline.Subject` (cached per
     subject object).
 

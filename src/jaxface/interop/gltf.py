@@ -20,14 +20,23 @@ import os
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pygltflib as gl
 
-from ..errors import MeshError
+from ..errors import DataNotFoundError, MeshError
 from ..render import vertex_normals
 
-__all__ = ["MM_TO_M", "GltfPart", "build_gltf", "write_glb", "check_gltf", "morph_targets_of"]
+__all__ = [
+    "MM_TO_M",
+    "GltfPart",
+    "build_gltf",
+    "write_glb",
+    "load_glb",
+    "check_gltf",
+    "morph_targets_of",
+]
 
 #: mm -> m
 MM_TO_M = 1e-3
@@ -114,7 +123,7 @@ def build_gltf(
         raise MeshError(f"duplicate morph target names {dup}.", problem="duplicate")
     g = gl.GLTF2(asset=gl.Asset(version="2.0", generator="jaxface"))
     g.scene = 0
-    g.scenes = [gl.Scene(nodes=[])]
+    scene_nodes: list[int] = [0]
     blob = _Blob(g)
     n0 = vertex_normals(X, T)
     pos = blob.add(_f32(X * MM_TO_M, "rest"), kind="VEC3", target=gl.ARRAY_BUFFER, minmax=True)
@@ -151,7 +160,6 @@ def build_gltf(
         mesh.extras = {"targetNames": names}
     g.meshes.append(mesh)
     g.nodes.append(gl.Node(name=skin_name, mesh=0))
-    g.scenes[0].nodes.append(0)
     for part in parts:
         V = np.asarray(part.vertices, np.float64)
         F = np.asarray(part.triangles, np.int64)
@@ -180,7 +188,7 @@ def build_gltf(
             )
         )
         g.nodes.append(gl.Node(name=part.name, mesh=len(g.meshes) - 1))
-        g.scenes[0].nodes.append(len(g.nodes) - 1)
+        scene_nodes.append(len(g.nodes) - 1)
     if animation is not None:
         times = np.asarray(animation[0], np.float64).reshape(-1)
         W = np.asarray(animation[1], np.float64)
@@ -205,6 +213,7 @@ def build_gltf(
                 ],
             )
         )
+    g.scenes = [gl.Scene(nodes=scene_nodes)]
     while len(blob.data) % 4:
         blob.data.append(0)
     g.buffers = [gl.Buffer(byteLength=len(blob.data))]
@@ -242,9 +251,35 @@ _CSIZE = {gl.FLOAT: 4, gl.UNSIGNED_INT: 4, gl.UNSIGNED_SHORT: 2, gl.UNSIGNED_BYT
 _CDTYPE = {gl.FLOAT: np.float32, gl.UNSIGNED_INT: np.uint32, gl.UNSIGNED_SHORT: np.uint16}
 
 
-def _read(g: gl.GLTF2, blob: bytes, i: int) -> np.ndarray:
-    a = g.accessors[i]
-    v = g.bufferViews[a.bufferView]
+def _ix(i) -> int:
+    if i is None:
+        raise MeshError("a glTF index is missing (None).", problem="structure")
+    return int(i)
+
+
+def _acc(t: Any, key: str):
+    """A morph target's accessor id (pygltflib keeps targets as dicts)."""
+    return t.get(key) if isinstance(t, dict) else getattr(t, key, None)
+
+
+def load_glb(path) -> gl.GLTF2:
+    """Read a ``.glb`` with pygltflib.
+
+    Raises:
+        DataNotFoundError: no such file; MeshError: not a readable glTF binary.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise DataNotFoundError(f"glTF file not found: {p}")
+    g = gl.GLTF2().load(str(p))
+    if g is None:
+        raise MeshError(f"{p} is not a readable glTF 2.0 file.", problem="format")
+    return g
+
+
+def _read(g: gl.GLTF2, blob: bytes, i) -> np.ndarray:
+    a = g.accessors[_ix(i)]
+    v = g.bufferViews[_ix(a.bufferView)]
     n = _NCOMP[a.type]
     arr = np.frombuffer(
         blob,
@@ -321,14 +356,14 @@ def check_gltf(g: gl.GLTF2) -> list[str]:
                     out.append(f"{what}: bad triangle indices")
             nt = len(p.targets or [])
             for ti, t in enumerate(p.targets or []):
-                keys = set(t) if isinstance(t, dict) else set(vars(t))
+                keys = [k for k in ("POSITION", "NORMAL", "TANGENT") if _acc(t, k) is not None]
                 if "POSITION" not in keys:
                     out.append(f"{what} target {ti}: no POSITION")
                     continue
                 for key in keys:
-                    if g.accessors[t[key]].count != nv:
+                    if g.accessors[_ix(_acc(t, key))].count != nv:
                         out.append(f"{what} target {ti}: {key} count differs from the vertices")
-                check_pos(t["POSITION"], f"{what} target {ti}")
+                check_pos(_ix(_acc(t, "POSITION")), f"{what} target {ti}")
             if nt:
                 names = (m.extras or {}).get("targetNames")
                 if not isinstance(names, list) or len(names) != nt:
@@ -342,8 +377,8 @@ def check_gltf(g: gl.GLTF2) -> list[str]:
                 out.append(f"animation {ai}: input times do not increase")
         for c in an.channels:
             if c.target.path == "weights":
-                node = g.nodes[c.target.node]
-                nt = len(g.meshes[node.mesh].primitives[0].targets or [])
+                node = g.nodes[_ix(c.target.node)]
+                nt = len(g.meshes[_ix(node.mesh)].primitives[0].targets or [])
                 s = an.samplers[c.sampler]
                 if g.accessors[s.output].count != g.accessors[s.input].count * nt:
                     out.append(f"animation {ai}: output count is not keyframes x {nt} targets")
@@ -353,13 +388,22 @@ def check_gltf(g: gl.GLTF2) -> list[str]:
 def morph_targets_of(g: gl.GLTF2, mesh: int = 0) -> dict:
     """Read back a mesh's rest, triangles and targets (metres), and the animation keyframes:
     ``{"rest": (V, 3), "triangles": (F, 3), "names": [...], "deltas": (T, V, 3),
-    "times": (K,) or None, "weights": (K, T) or None}``."""
+    "normals": (V, 3), "normal_deltas": (T, V, 3), "times": (K,) or None,
+    "weights": (K, T) or None}``."""
     blob = g.binary_blob() or b""
     p = g.meshes[mesh].primitives[0]
     rest = _read(g, blob, p.attributes.POSITION).astype(np.float64)
     tris = _read(g, blob, p.indices).astype(np.int64).reshape(-1, 3)
     deltas = (
-        np.stack([_read(g, blob, t["POSITION"]).astype(np.float64) for t in (p.targets or [])])
+        np.stack(
+            [_read(g, blob, _acc(t, "POSITION")).astype(np.float64) for t in (p.targets or [])]
+        )
+        if p.targets
+        else np.zeros((0,) + rest.shape)
+    )
+    normals = _read(g, blob, p.attributes.NORMAL).astype(np.float64)
+    normal_deltas = (
+        np.stack([_read(g, blob, _acc(t, "NORMAL")).astype(np.float64) for t in p.targets])
         if p.targets
         else np.zeros((0,) + rest.shape)
     )
@@ -367,7 +411,7 @@ def morph_targets_of(g: gl.GLTF2, mesh: int = 0) -> dict:
     times = weights = None
     for an in g.animations:
         for c in an.channels:
-            if c.target.path == "weights" and g.nodes[c.target.node].mesh == mesh:
+            if c.target.path == "weights" and g.nodes[_ix(c.target.node)].mesh == mesh:
                 s = an.samplers[c.sampler]
                 times = _read(g, blob, s.input).astype(np.float64)
                 weights = _read(g, blob, s.output).astype(np.float64).reshape(len(times), -1)
@@ -376,6 +420,8 @@ def morph_targets_of(g: gl.GLTF2, mesh: int = 0) -> dict:
         "triangles": tris,
         "names": names,
         "deltas": deltas,
+        "normals": normals,
+        "normal_deltas": normal_deltas,
         "times": times,
         "weights": weights,
     }
