@@ -115,6 +115,10 @@ def run_fit(
             f"{len(scan_landmarks)} --scan-landmarks for {len(scans)} --scan: give one per scan, in the "
             "same order (or none, to use the .lm3 files beside the scans)."
         )
+    if isinstance(arkit, (str, Path)) and arkit != "auto" and not Path(arkit).is_file():
+        from ..errors import DataNotFoundError
+
+        raise DataNotFoundError(f"--ict {arkit}: no such file (ICT-FaceKit ict_face.npz).")
     step = on_step or (lambda s: None)
     step("reading the scans")
     n_scan = _load(neutral, neutral_landmarks, "neutral scan")
