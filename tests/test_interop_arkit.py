@@ -232,3 +232,37 @@ def test_one_sided_smile_reads_as_mouth_smile_left(bs900_basis):
     top = sol.strongest(3)
     assert top[0][0] == "mouthSmileLeft", top
     assert sol.coefficients["mouthSmileLeft"] > 3 * sol.coefficients["mouthSmileRight"] + 0.2
+
+
+# ------------------------------------------------------------------------------ synth --arkit
+def test_parse_arkit_and_inverse_map_controls():
+    from jaxface.errors import FitError
+    from jaxface.interop.inverse import JAW_UNITS, InverseMap, parse_arkit
+
+    assert parse_arkit(["browInnerUp=0.8,jawOpen=0.3", "eyeBlinkLeft"]) == {
+        "browInnerUp": 0.8,
+        "jawOpen": 0.3,
+        "eyeBlinkLeft": 1.0,
+    }
+    with pytest.raises(FitError, match="unknown ARKit shape"):
+        parse_arkit(["eyeBlink_L=1"])  # the ICT name, not ARKit's
+    with pytest.raises(FitError, match=r"\[0, 1\]"):
+        parse_arkit(["jawOpen=1.5"])
+    muscles = ("m0", "m1")
+    inputs = muscles + tuple(JAW_UNITS)
+    M = np.zeros((52, len(inputs)))
+    M[ARKIT_NAMES.index("jawOpen"), inputs.index("jaw_pitch")] = 0.5
+    M[ARKIT_NAMES.index("jawLeft"), inputs.index("jaw_yaw_left")] = 1.0
+    M[ARKIT_NAMES.index("mouthSmileLeft"), 1] = 0.7
+    M[ARKIT_NAMES.index("cheekPuff"), inputs.index("cheek_puff")] = 1.0
+    imap = InverseMap(inputs, M, np.zeros(52), np.zeros(52), "k")
+    a, (pitch, yaw, prot), puff = imap.controls(
+        {"jawOpen": 1.0, "jawLeft": 0.4, "mouthSmileLeft": 1.0, "cheekPuff": 0.5}, ["m1", "m0"]
+    )
+    np.testing.assert_allclose(a, [0.7, 0.0])  # in the order asked for
+    assert pitch == pytest.approx(9.0) and yaw == pytest.approx(2.0) and prot == 0.0
+    assert puff == pytest.approx(0.5)
+    # a JSON round trip keeps the map
+    back = InverseMap.from_json(imap.to_json())
+    np.testing.assert_array_equal(back.matrix, M)
+    assert back.inputs == inputs
