@@ -146,6 +146,7 @@ def head_export(tmp_path_factory):
 def test_head_export_targets_names_and_parts(head_export):
     import jax.numpy as jnp
 
+    from jaxface.anatomy.jaw import JawPose
     from jaxface.anatomy.rig import synthesize
 
     subj, out, res, skins, controls, _, _ = head_export
@@ -159,7 +160,9 @@ def test_head_export_targets_names_and_parts(head_export):
     # a control's target is the exact synthesis at activation 1 minus rest
     a = np.zeros(len(subj.rig.muscle_names))
     a[list(subj.rig.muscle_names).index(controls[0])] = 1.0
-    x = np.asarray(synthesize(subj.rig, jnp.asarray(a, subj.rig.rest.dtype)))
+    x = np.asarray(
+        synthesize(subj.rig, jnp.asarray(a, subj.rig.rest.dtype), JawPose(0.0, 0.0, 0.0), 0.0)
+    )
     np.testing.assert_allclose(r["deltas"][0], (x - subj.rest) / 1000, atol=1e-7)
     assert np.abs(r["deltas"][0]).max() > 1e-3  # the smile moves the skin by millimetres
     scene = trimesh.load_scene(str(out))
@@ -178,18 +181,40 @@ def test_exact_keyframes_reproduce_the_fits(head_export):
         assert np.abs(x - skins[stem] / 1000).max() < 1e-4
 
 
-def test_activation_keyframes_and_foreign_fits(head_export, tmp_path):
+def test_activation_keyframes(head_export, tmp_path):
     from jaxface.commands.export import run_export
 
-    subj, _, _, _, controls, fits, tmp = head_export
+    subj, _, _, _, controls, fits, _ = head_export
     res = run_export(subj, tmp_path / "b.glb", fits=fits, exact=False, controls=controls, aus=False)
     r = morph_targets_of(load_glb(str(tmp_path / "b.glb")))
     assert r["names"] == [f"muscle.{c}" for c in controls]
     np.testing.assert_allclose(r["weights"], [[0.8, 0.0], [0.0, 0.3]], atol=1e-7)
     assert any("--exact" in n for n in res["notes"])
-    # a fit whose skin has another vertex count belongs to another subject
-    bad = tmp_path / "other.json"
-    bad.write_text((tmp / "s_smile.json").read_text())
-    trimesh.creation.icosphere(subdivisions=1).export(tmp_path / "other.fitted.ply")
+
+
+def test_read_fit_undoes_rig_to_scan_and_refuses_foreign_fits(tmp_path):
+    from jaxface.fit.align import rotation_from_euler
+    from jaxface.interop.targets import read_fit
+    from jaxface.mesh import save_mesh
+
+    V, F, _ = _small()
+    R = rotation_from_euler(7.0, -4.0)
+    t = np.array([3.0, -1.0, 2.5])
+    save_mesh(tmp_path / "s.fitted.ply", V @ R.T + t, F, units="mm")
+    doc = {
+        "scan": "s",
+        "activations": {"m": 0.25},
+        "jaw": {"pitch_deg": 1.0},
+        "rigid": {"rig_to_scan": {"rotation": R.tolist(), "translation": t.tolist()}},
+        "arkit": {"jawOpen": 0.1},
+    }
+    (tmp_path / "s.json").write_text(json.dumps(doc))
+    f = read_fit(tmp_path / "s.json", len(V))
+    assert f.stem == "s" and f.activations == {"m": 0.25} and f.arkit == {"jawOpen": 0.1}
+    np.testing.assert_allclose(f.skin, V, atol=1e-4)  # PLY float precision
     with pytest.raises(FitError, match="another subject"):
-        run_export(subj, tmp_path / "c.glb", fits=[bad], controls=controls, aus=False)
+        read_fit(tmp_path / "s.json", len(V) + 1)
+    (tmp_path / "bad.json").write_text(json.dumps({"scan": "bad"}))
+    save_mesh(tmp_path / "bad.fitted.ply", V, F, units="mm")
+    with pytest.raises(FitError, match="not a jaxface fit JSON"):
+        read_fit(tmp_path / "bad.json")
