@@ -32,22 +32,11 @@ from jaxface.interop.arkit import (
     ARKIT_NAMES,
     arkit_weights_from_ict,
     fit_arkit_to_scan,
+    landmark_motion,
     transfer_ict_basis,
 )
 from jaxface.io import load_scan
 from jaxface.testing import shared_path
-
-
-def _landmark_motion(reg, neutral, scan, transform):
-    """The registered landmarks' attachment and their motion: aligned expression landmark
-    minus neutral landmark (labels present in both scans), mm."""
-    lp = reg.landmark_points
-    qn = dict(zip(neutral.landmarks.names, np.asarray(neutral.landmarks.positions)))
-    qe = dict(zip(scan.landmarks.names, np.asarray(scan.landmarks.positions)))
-    keep = [i for i, n in enumerate(reg.landmarks.names) if n in qn and n in qe]
-    names = [reg.landmarks.names[i] for i in keep]
-    mot = np.stack([transform.apply(qe[n][None])[0] - qn[n] for n in names])
-    return np.asarray(lp.tri)[keep], np.asarray(lp.bary)[keep], mot
 
 
 def main() -> None:
@@ -93,7 +82,7 @@ def main() -> None:
                 tris,
                 al.transform.apply(v),
                 tr,
-                landmarks=_landmark_motion(reg, neutral, scan, al.transform),
+                landmarks=landmark_motion(reg, neutral, scan, al.transform),
                 l1=args.l1,
             )
             secs = time.perf_counter() - t

@@ -21,6 +21,7 @@ from jaxface.interop.arkit import (
     arkit_weights_from_ict,
     box_qp,
     fit_arkit_to_scan,
+    landmark_motion,
     readout_for_subject,
     solve_arkit,
 )
@@ -228,7 +229,10 @@ def test_one_sided_smile_reads_as_mouth_smile_left(bs900_basis):
         scan = load_scan(root / "bs900_LFAU_12L_0.bnt")
     al = align_scans(scan, neutral)
     v, tr, _ = scan.mesh_arrays()
-    sol = fit_arkit_to_scan(basis, reg.vertices, reg.mesh.triangles, al.transform.apply(v), tr)
+    lmk = landmark_motion(reg, neutral, scan, al.transform)
+    sol = fit_arkit_to_scan(
+        basis, reg.vertices, reg.mesh.triangles, al.transform.apply(v), tr, landmarks=lmk
+    )
     top = sol.strongest(3)
     assert top[0][0] == "mouthSmileLeft", top
     assert sol.coefficients["mouthSmileLeft"] > 3 * sol.coefficients["mouthSmileRight"] + 0.2

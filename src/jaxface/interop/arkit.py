@@ -59,6 +59,7 @@ __all__ = [
     "tukey_weights",
     "solve_arkit",
     "fit_arkit_to_scan",
+    "landmark_motion",
     "ArkitReadout",
     "readout_for_subject",
 ]
@@ -642,6 +643,21 @@ def fit_arkit_to_scan(
         res = float(np.sqrt(np.sum(w * (A @ c - b) ** 2)))
     mot = float(np.sqrt(np.mean(np.sum(np.einsum("k,kpd->pd", c, Bm) ** 2, -1))))
     return _solution(basis, c, ids, res, mot, iterations)
+
+
+def landmark_motion(registration, neutral, scan, transform):
+    """The landmark term of :func:`fit_arkit_to_scan`: the registered landmarks' attachment
+    (``registration.landmark_points``) and their motion ``T(q_scan) - q_neutral`` (mm) for the
+    labels present in both scans; ``transform`` maps the scan into the neutral's frame."""
+    lp = registration.landmark_points
+    qn = dict(zip(neutral.landmarks.names, np.asarray(neutral.landmarks.positions)))
+    qe = dict(zip(scan.landmarks.names, np.asarray(scan.landmarks.positions)))
+    names = list(registration.landmarks.names)
+    keep = [i for i, n in enumerate(names) if n in qn and n in qe]
+    if not keep:
+        raise LandmarkError("no landmark label common to the registration and both scans.")
+    mot = np.stack([transform.apply(qe[names[i]][None])[0] - qn[names[i]] for i in keep])
+    return np.asarray(lp.tri)[keep], np.asarray(lp.bary)[keep], mot
 
 
 # ------------------------------------------------------------------------------------------
