@@ -54,8 +54,8 @@ def _mirrored(scan):
 
 @pytest.fixture(scope="module")
 def fitted():
-    from jaxface.fit.pipeline import SubjectOptions, fit_expressions, prepare_subject
     from jaxface.fit.options import FitOptions
+    from jaxface.fit.pipeline import SubjectOptions, fit_expressions, prepare_subject
     from jaxface.testing import shared_path
 
     root = shared_path("data", "bosphorus_style")

@@ -66,6 +66,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "jaxface.commands.clone",
     "jaxface.commands.convert",
     "jaxface.commands.bench",
+    "jaxface.commands.export",
 )
 
 #: status and progress go to stderr so that stdout stays clean for data

@@ -11,7 +11,8 @@ Landmark files default to the scan path with suffix ``.lm3``. Several ``--scan``
 batch (solved together in one compiled call) with a progress bar. Per scan it writes
 ``DIR/<scan-stem>.json`` (keys: ``activations``, ``au_intensities``, ``au_motion_mm``, ``au_sparse``, ``jaw``, ``rigid``,
 ``metrics``, ``baselines``, ``solver``, ``frame``, ``quality``: coverage, identity, noise
-floor and warnings, :mod:`jaxface.fit.quality`; see :class:`jaxface.fit.pipeline.ExpressionFit`)
+floor and warnings, :mod:`jaxface.fit.quality`; ``arkit``, ``arkit_detail``: the ARKit-52
+readout, :mod:`jaxface.interop.arkit`; see :class:`jaxface.fit.pipeline.ExpressionFit`)
 and ``DIR/<scan-stem>.fitted.ply`` (the fitted skin in the scan's own frame, mm); with
 ``--pictures`` also ``DIR/<scan-stem>.fit.png`` (scan, before, fit, error heat map).
 
@@ -100,6 +101,7 @@ def run_fit(
     progress=None,
     on_step=None,
     on_written=None,
+    arkit="auto",
 ) -> list:
     """The library behind ``jaxface fit``: fit ``scans`` of the subject of ``neutral`` and
     write the results into ``out``. Returns the :class:`~jaxface.fit.pipeline.ExpressionFit`
@@ -110,6 +112,8 @@ def run_fit(
         on_step: optional ``(text) -> None`` called before each major step.
         on_written: optional ``(ExpressionFit, files) -> None`` called after each scan's files
             are written.
+        arkit: ICT data of the ARKit readout (``"auto"``, a path, None = off; see
+            :func:`jaxface.fit.pipeline.fit_expressions`).
     """
     from ..atomic import ensure_out_dir
     from ..errors import FitError, LandmarkError
@@ -126,6 +130,10 @@ def run_fit(
             "same order (or none, to use the .lm3 files beside the scans)."
         )
     ensure_out_dir(out)  # before the minute-long build: a bad --out fails at once
+    if isinstance(arkit, (str, Path)) and arkit != "auto" and not Path(arkit).is_file():
+        from ..errors import DataNotFoundError
+
+        raise DataNotFoundError(f"--ict {arkit}: no such file (ICT-FaceKit ict_face.npz).")
     step = on_step or (lambda s: None)
     step("reading the scans")
     n_scan = _load(neutral, neutral_landmarks, "neutral scan")
@@ -157,6 +165,7 @@ def run_fit(
         batch_size=batch_size,
         on_result=lambda r: _write(r, out, pictures, on_written),
         noise_floor=True,  # one self-fit of the neutral: the AU readout's noise floor
+        arkit=arkit,
     )
     return results
 
@@ -283,6 +292,14 @@ def register(app: typer.Typer) -> None:
             min=1,
             help="Scans fitted together (one after the other on the CPU, one vmap on a GPU); default all.",
         ),
+        ict: Path | None = typer.Option(  # noqa: UP007
+            None,
+            "--ict",
+            help="ICT-FaceKit ict_face.npz for the ARKit-52 coefficients (key 'arkit'; default "
+            "$JAXFACE_ICT; without it the JSON says why "
+            "'arkit' is null).",
+        ),
+        no_arkit: bool = typer.Option(False, "--no-arkit", help="Skip the ARKit readout."),
         quiet: bool = typer.Option(False, "--quiet", "-q", help="Only print errors."),
     ):
         """Fit muscle activations, jaw pose and a rigid correction to expression scans of one
@@ -371,6 +388,7 @@ def register(app: typer.Typer) -> None:
                 progress=on_progress,
                 on_step=on_step,
                 on_written=done,
+                arkit=None if no_arkit else (ict if ict is not None else "auto"),
             )
         for r in results:  # shown even with --quiet: the result may be meaningless
             q = getattr(r, "quality", None)

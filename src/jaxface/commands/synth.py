@@ -307,6 +307,13 @@ def register(app: typer.Typer) -> None:
             help="Also build the other backend's rig on the same face and write "
             "backends_emotions.png: the six emotions, PBD next to LTW, with their distance (mm) as a heat map.",
         ),
+        arkit: List[str] = typer.Option(  # noqa: UP006
+            [],
+            "--arkit",
+            help="ARKit-52 coefficients, e.g. browInnerUp=0.8,jawOpen=0.3: drive the rig through "
+            "the inverse map (ARKit shapes -> controls, fitted on this face and cached; needs the "
+            "ICT-FaceKit data: $JAXFACE_ICT or $JAXFACE_SHARED).",
+        ),
         list_controls: bool = typer.Option(
             False,
             "--list-controls",
@@ -324,6 +331,7 @@ def register(app: typer.Typer) -> None:
           jaxface synth --mesh face.ply --landmarks face.lm3 --emotion surprise --out s
           jaxface synth --backend ltw --emotion happiness --out s_ltw
           jaxface synth --compare-backends --out compare
+          jaxface synth --arkit browInnerUp=0.8,jawOpen=0.3 --out arkit
         """
         from ..anatomy.jaw import JawPose
         from ..anatomy.rig import Rig, build_rig
@@ -355,9 +363,14 @@ def register(app: typer.Typer) -> None:
         parse_muscles(muscle, [str(m).partition("=")[0].strip() for m in muscle])  # values
         # are checked before the minute-long rig build; the names once the rig is built
         jaw_given = any(v != 0.0 for v in (jaw_pitch, jaw_yaw, jaw_protrusion))
-        if not (emotions or aus or muscle or jaw_given or list_controls or compare_backends):
+        from ..interop.inverse import parse_arkit
+
+        arkit_c = parse_arkit(arkit)
+        if not (
+            emotions or aus or muscle or jaw_given or arkit_c or list_controls or compare_backends
+        ):
             raise RigError(
-                "nothing to synthesise: give --emotion, --au, --muscle or --jaw-* "
+                "nothing to synthesise: give --emotion, --au, --muscle, --arkit or --jaw-* "
                 "(see jaxface synth --help)."
             )
         with status_steps("jaxface synth", quiet=quiet) as step:
@@ -413,6 +426,26 @@ def register(app: typer.Typer) -> None:
                     )[:80]
                 )
                 exprs.append((label, np.asarray(a, float), jaw, puff))
+            if arkit_c:
+                from ..interop.inverse import inverse_map_cached
+
+                step("ARKit inverse map (ICT shapes cloned onto the face, fitted by the rig)")
+                lm_ = rig_args[0].landmarks if mesh is None else rig_args[1]
+                fm_ = rig_args[0].face_mask if mesh is None else None
+                imap, _ = inverse_map_cached(rig, lm_, fm_)
+                a_k, (jp, jy, jt), puff_k = imap.controls(arkit_c, rig.muscle_names)
+                label_k = name if (name and not (aus or muscle or jaw_given)) else None
+                exprs.append(
+                    (
+                        label_k
+                        or _safe_name(
+                            "arkit_" + "_".join(f"{k}-{v:g}" for k, v in arkit_c.items())
+                        )[:80],
+                        a_k,
+                        JawPose(jp, jy, jt),
+                        puff_k,
+                    )
+                )
             res = []
             if exprs:
                 step(f"compiling and synthesising {len(exprs)} expression(s)")

@@ -41,6 +41,7 @@ from ..atomic import ensure_out_dir, write_json_atomic
 from ..errors import FitError, LandmarkError
 from ..facs import au_intensities
 from ..head import generic_head
+from ..interop.arkit import readout_for_subject
 from ..io import load_scan
 from ..io.scanner import SkinLandmarks
 from ..landmarks import Landmarks
@@ -84,6 +85,8 @@ JSON_KEYS = (
     "solver",
     "frame",
     "quality",
+    "arkit",
+    "arkit_detail",
 )
 
 
@@ -503,6 +506,9 @@ class ExpressionFit:
         metrics: :class:`jaxface.fit.metrics.FitMetrics` of the fit; baselines: ``{"B0":
             FitMetrics, "B1": FitMetrics}``; baseline_meshes: ``{"B0": TriMesh, "B1": TriMesh}``.
         muscle_names: the rig's control order.
+        arkit: ARKit-52 name -> coefficient in [0, 1] read from the fitted skin motion
+            (:mod:`jaxface.interop.arkit`), or None when unavailable; arkit_detail: each
+            coefficient's contribution (mm), the residual (mm), or the reason it is missing.
     """
 
     stem: str
@@ -525,6 +531,8 @@ class ExpressionFit:
     au_sparse: dict = field(default_factory=dict)
     au_sparse_misfit_mm: float | None = None
     quality: Any = None
+    arkit: dict | None = None
+    arkit_detail: dict = field(default_factory=dict)
 
     @property
     def status(self) -> str:
@@ -613,6 +621,8 @@ class ExpressionFit:
             "solver": self.solver_dict(),
             "frame": self.frame_dict(),
             "quality": None if self.quality is None else self.quality.to_dict(),
+            "arkit": None if self.arkit is None else {k: float(v) for k, v in self.arkit.items()},
+            "arkit_detail": dict(self.arkit_detail),
         }
 
     def strongest_aus(
@@ -748,6 +758,7 @@ def fit_expressions(
     batch_size: int | None = None,
     on_result: Callable[[ExpressionFit], None] | None = None,
     noise_floor: bool = False,
+    arkit: Any = "auto",
 ) -> list[ExpressionFit]:
     """Fit a batch of expression scans of the subject.
 
@@ -769,6 +780,9 @@ def fit_expressions(
             ``subject.au_noise_floor``, one more fit per subject) for the AU readout's noise
             floor in each result's ``quality`` (``jaxface fit`` does); False (default): no
             noise check unless ``subject.au_noise_floor`` is already set.
+        arkit: the ARKit readout's ICT data: ``"auto"`` (``$JAXFACE_ICT`` or the shared
+            folder), a path to ``ict_face.npz``, an ``ArkitBasis``, or None (off);
+            :func:`jaxface.interop.arkit.readout_for_subject`.
 
     Returns:
         one :class:`ExpressionFit` per scan, in order.
@@ -804,6 +818,7 @@ def fit_expressions(
     )  # the sparse AU readout's, once per call
     reg = subject.registration
     tris = subject.triangles
+    readout = readout_for_subject(subject, arkit) if loaded else None
 
     hands_of: dict[int, tuple] = {}  # alignment -> landmark handedness (neutral, scan)
     index_of: dict[int, Any] = {}  # alignment -> SurfaceIndex of its scan
@@ -847,6 +862,7 @@ def fit_expressions(
                 fitted_landmarks=subject.landmarks_on(mesh.vertices),
                 scan_landmarks=s.landmarks,
             )
+        ak, ak_detail = readout(f.skin) if readout is not None else (None, {})
         je = f.jaw_effective
         aus = au_intensities(
             f.activations, subject.muscle_names, JawPose(float(je[0]), float(je[1]), float(je[2]))
@@ -887,6 +903,8 @@ def fit_expressions(
             notes=notes,
             face_mask=np.asarray(reg.face_mask, bool),
             quality=quality,
+            arkit=ak,
+            arkit_detail=ak_detail,
         )
 
     if noise_floor and loaded and subject.au_noise_floor is None:

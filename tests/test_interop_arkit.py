@@ -1,0 +1,272 @@
+"""ARKit-52 readout: the name mapping and sides, the bounded QP against an independent solver,
+exact recovery of known coefficients from motions built from a basis (rig-free and ICP), the
+unavailable-data path, and on shared data the side of the one-sided smile scan (LFAU_12L)."""
+
+import warnings
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.optimize import minimize
+
+from jaxface.interop.arkit import (
+    ARKIT_MISSING_IN_ICT,
+    ARKIT_NAMES,
+    ICT_TO_ARKIT,
+    ICT_UNUSED,
+    ArkitBasis,
+    arkit_deltas_from_ict,
+    arkit_from_ict_name,
+    arkit_weights_from_ict,
+    box_qp,
+    fit_arkit_to_scan,
+    landmark_motion,
+    readout_for_subject,
+    solve_arkit,
+)
+
+
+# ------------------------------------------------------------------------------ names
+def test_arkit_names_are_apples_52():
+    assert len(ARKIT_NAMES) == 52 and len(set(ARKIT_NAMES)) == 52
+    assert ARKIT_NAMES[0] == "browDownLeft" and ARKIT_NAMES[-1] == "tongueOut"
+    for n in ("eyeBlinkLeft", "jawOpen", "mouthSmileRight", "cheekPuff", "browInnerUp"):
+        assert n in ARKIT_NAMES
+
+
+def test_ict_to_arkit_sides_and_merges():
+    assert arkit_from_ict_name("eyeBlink_L") == "eyeBlinkLeft"
+    assert arkit_from_ict_name("eyeBlink_R") == "eyeBlinkRight"
+    assert arkit_from_ict_name("mouthSmile_L") == "mouthSmileLeft"
+    assert (
+        arkit_from_ict_name("browInnerUp_L")
+        == arkit_from_ict_name("browInnerUp_R")
+        == "browInnerUp"
+    )
+    assert arkit_from_ict_name("cheekPuff_R") == "cheekPuff"
+    assert arkit_from_ict_name("jawOpen") == "jawOpen"
+    for n in ICT_UNUSED:
+        assert arkit_from_ict_name(n) is None
+    # every ARKit name but tongueOut has an ICT source, and only the merged ones have two
+    covered = set(ICT_TO_ARKIT.values())
+    assert covered == set(ARKIT_NAMES) - set(ARKIT_MISSING_IN_ICT)
+    assert len(ICT_TO_ARKIT) == 53
+    two = {a for a in covered if list(ICT_TO_ARKIT.values()).count(a) == 2}
+    assert two == {"browInnerUp", "cheekPuff"}
+
+
+def test_recipe_weights_and_deltas_follow_the_mapping():
+    w = arkit_weights_from_ict({"browInnerUp_L": 1.0, "browInnerUp_R": 1.0, "mouthSmile_L": 0.7})
+    assert w["browInnerUp"] == 1.0 and w["mouthSmileLeft"] == 0.7 and w["mouthSmileRight"] == 0.0
+    assert set(w) == set(ARKIT_NAMES)
+    names = sorted(ICT_TO_ARKIT) + list(ICT_UNUSED)
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(len(names), 5, 3))
+    out, avail = arkit_deltas_from_ict(names, d)
+    k = ARKIT_NAMES.index("browInnerUp")
+    np.testing.assert_allclose(
+        out[k], d[names.index("browInnerUp_L")] + d[names.index("browInnerUp_R")]
+    )
+    np.testing.assert_allclose(out[ARKIT_NAMES.index("eyeBlinkLeft")], d[names.index("eyeBlink_L")])
+    assert not avail[ARKIT_NAMES.index("tongueOut")]
+    assert np.all(out[ARKIT_NAMES.index("tongueOut")] == 0)
+
+
+# ------------------------------------------------------------------------------ solver
+def test_box_qp_matches_an_independent_bounded_solver():
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(40, 8))
+    G = A.T @ A
+    g = A.T @ rng.normal(size=40) * 3.0
+    c = box_qp(G, g)
+
+    def f(x):
+        return 0.5 * x @ G @ x - g @ x, G @ x - g
+
+    ref = minimize(
+        f,
+        np.full(8, 0.5),
+        jac=True,
+        method="L-BFGS-B",
+        bounds=[(0, 1)] * 8,
+        options={"ftol": 1e-15, "gtol": 1e-12, "maxiter": 5000},
+    )
+    assert f(c)[0] <= ref.fun + 1e-9
+    np.testing.assert_allclose(c, ref.x, atol=1e-5)
+    assert np.any(c == 0.0) or np.any(c == 1.0)  # the bounds are active in this case
+
+
+def _sphere_basis(seed=0, subdiv=3):
+    """A sphere (radius 50 mm) with 52 smooth random displacement fields (unit RMS, mm)."""
+    s = trimesh.creation.icosphere(subdivisions=subdiv, radius=50.0)
+    V = np.asarray(s.vertices)
+    F = np.asarray(s.faces)
+    rng = np.random.default_rng(seed)
+    centres = rng.normal(size=(52, 3))
+    centres /= np.linalg.norm(centres, axis=1, keepdims=True) / 50.0
+    dirs = rng.normal(size=(52, 3))
+    D = (
+        np.exp(-np.sum((V[None] - centres[:, None]) ** 2, -1) / (2 * 15.0**2))[..., None]
+        * dirs[:, None]
+    )
+    D[ARKIT_NAMES.index("tongueOut")] = 0.0
+    D *= 3.0
+    avail = np.ones(52, bool)
+    avail[ARKIT_NAMES.index("tongueOut")] = False
+    return V, F, ArkitBasis(D, avail, np.ones(len(V), bool), "synthetic")
+
+
+def test_solve_recovers_known_coefficients_exactly():
+    V, F, basis = _sphere_basis()
+    truth = dict.fromkeys(ARKIT_NAMES, 0.0)
+    truth.update(jawOpen=0.5, mouthSmileLeft=1.0, browInnerUp=0.3, eyeBlinkRight=0.8)
+    motion = np.einsum("k,kvd->vd", np.array([truth[n] for n in ARKIT_NAMES]), basis.deltas)
+    sol = solve_arkit(basis, motion, l1=0.0)
+    for n in ARKIT_NAMES:
+        assert sol.coefficients[n] == pytest.approx(truth[n], abs=1e-6), n
+    assert sol.residual_mm < 1e-5
+    assert sol.unavailable == ("tongueOut",)
+    # contributions are the RMS of each shape's share of the motion
+    k = ARKIT_NAMES.index("jawOpen")
+    want = np.sqrt(np.mean(np.sum((0.5 * basis.deltas[k]) ** 2, -1)))
+    assert sol.contribution_mm["jawOpen"] == pytest.approx(want, rel=1e-6)
+    # robust weights: gross outliers on a few vertices do not move the answer
+    bad = motion.copy()
+    bad[:6] += 40.0
+    sol2 = solve_arkit(basis, bad, l1=0.0)
+    got = np.array([sol2.coefficients[n] for n in ARKIT_NAMES])
+    np.testing.assert_allclose(got, [truth[n] for n in ARKIT_NAMES], atol=0.02)
+
+
+def test_scan_icp_recovers_known_coefficients():
+    V, F, basis = _sphere_basis(seed=1)
+    c = np.zeros(52)
+    c[[ARKIT_NAMES.index(n) for n in ("mouthSmileLeft", "noseSneerRight", "jawOpen")]] = [
+        1.0,
+        0.6,
+        0.4,
+    ]
+    scan = V + np.einsum("k,kvd->vd", c, basis.deltas)
+    lm_ids = np.arange(0, len(V), 37)
+    tri = np.array([np.flatnonzero((F == i).any(1))[0] for i in lm_ids])
+    bary = (F[tri] == lm_ids[:, None]).astype(float)  # each landmark on a triangle corner
+    lmot = np.einsum("k,kld->ld", c, basis.deltas[:, lm_ids])
+    sol = fit_arkit_to_scan(basis, V, F, scan, F, landmarks=(tri, bary, lmot), l1=0.0, iterations=8)
+    got = np.array([sol.coefficients[n] for n in ARKIT_NAMES])
+    np.testing.assert_allclose(got, c, atol=0.03)
+
+
+def test_readout_without_ict_data_says_why(monkeypatch, tmp_path):
+    V, F, _ = _sphere_basis()
+
+    class Subject:  # the attributes readout_for_subject reads from a fit Subject
+        forward = SimpleNamespace(rest=V)
+        triangles = F
+        face_mask = np.ones(len(V), bool)
+
+        def landmarks_on(self, x):
+            return None
+
+    subject = Subject()
+    monkeypatch.setenv("JAXFACE_ICT", str(tmp_path / "missing.npz"))
+    ro = readout_for_subject(subject, "auto")
+    coeffs, detail = ro(V + 1.0)
+    assert coeffs is None and detail["available"] is False
+    assert "JAXFACE_ICT" in detail["reason"]
+    coeffs, detail = readout_for_subject(subject, None)(V)
+    assert coeffs is None and "not requested" in detail["reason"]
+
+
+# ------------------------------------------------------------------------------ shared data
+@pytest.fixture(scope="module")
+def bs900_basis():
+    from jaxface.fit.register import register_template
+    from jaxface.interop.arkit import transfer_ict_basis
+    from jaxface.io import load_scan
+    from jaxface.testing import shared_path
+
+    root = shared_path("data", "bosphorus_style")
+    shared_path("data", "ict", "ict_face.npz")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        neutral = load_scan(root / "bs900_N_N_0.bnt")
+    reg = register_template(neutral)
+    basis = transfer_ict_basis(
+        reg.vertices,
+        reg.mesh.triangles,
+        reg.landmarks,
+        reg.face_mask,
+        ict_path=shared_path("data", "ict", "ict_face.npz"),
+    )
+    return root, neutral, reg, basis
+
+
+@pytest.mark.data
+def test_ict_left_shapes_act_on_the_subjects_left(shared):
+    d = np.load(shared("data", "ict", "ict_face.npz"))
+    names = [str(n) for n in d["expression_names"]]
+    X = d["neutral"]
+    for n in ("mouthSmile_L", "eyeBlink_L", "browDown_L"):
+        m = np.linalg.norm(d["expression_deltas"][names.index(n)], axis=1)
+        w = m / m.sum()
+        assert float(w @ X[:, 0]) > 10.0, n  # +x: the subject's left
+
+
+@pytest.mark.data
+def test_one_sided_smile_reads_as_mouth_smile_left(bs900_basis):
+    from jaxface.fit.align import align_scans
+    from jaxface.io import load_scan
+
+    root, neutral, reg, basis = bs900_basis
+    assert basis.available.sum() == 51
+    # the transferred left smile moves the subject's left (+x) side of the registered skin
+    k = ARKIT_NAMES.index("mouthSmileLeft")
+    m = np.linalg.norm(basis.deltas[k], axis=1)
+    assert float((m / m.sum()) @ reg.vertices[:, 0]) > 10.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        scan = load_scan(root / "bs900_LFAU_12L_0.bnt")
+    al = align_scans(scan, neutral)
+    v, tr, _ = scan.mesh_arrays()
+    lmk = landmark_motion(reg, neutral, scan, al.transform)
+    sol = fit_arkit_to_scan(
+        basis, reg.vertices, reg.mesh.triangles, al.transform.apply(v), tr, landmarks=lmk
+    )
+    top = sol.strongest(3)
+    assert top[0][0] == "mouthSmileLeft", top
+    assert sol.coefficients["mouthSmileLeft"] > 3 * sol.coefficients["mouthSmileRight"] + 0.2
+
+
+# ------------------------------------------------------------------------------ synth --arkit
+def test_parse_arkit_and_inverse_map_controls():
+    from jaxface.errors import FitError
+    from jaxface.interop.inverse import JAW_UNITS, InverseMap, parse_arkit
+
+    assert parse_arkit(["browInnerUp=0.8,jawOpen=0.3", "eyeBlinkLeft"]) == {
+        "browInnerUp": 0.8,
+        "jawOpen": 0.3,
+        "eyeBlinkLeft": 1.0,
+    }
+    with pytest.raises(FitError, match="unknown ARKit shape"):
+        parse_arkit(["eyeBlink_L=1"])  # the ICT name, not ARKit's
+    with pytest.raises(FitError, match=r"\[0, 1\]"):
+        parse_arkit(["jawOpen=1.5"])
+    muscles = ("m0", "m1")
+    inputs = muscles + tuple(JAW_UNITS)
+    M = np.zeros((52, len(inputs)))
+    M[ARKIT_NAMES.index("jawOpen"), inputs.index("jaw_pitch")] = 0.5
+    M[ARKIT_NAMES.index("jawLeft"), inputs.index("jaw_yaw_left")] = 1.0
+    M[ARKIT_NAMES.index("mouthSmileLeft"), 1] = 0.7
+    M[ARKIT_NAMES.index("cheekPuff"), inputs.index("cheek_puff")] = 1.0
+    imap = InverseMap(inputs, M, np.zeros(52), np.zeros(52), "k")
+    a, (pitch, yaw, prot), puff = imap.controls(
+        {"jawOpen": 1.0, "jawLeft": 0.4, "mouthSmileLeft": 1.0, "cheekPuff": 0.5}, ["m1", "m0"]
+    )
+    np.testing.assert_allclose(a, [0.7, 0.0])  # in the order asked for
+    assert pitch == pytest.approx(9.0) and yaw == pytest.approx(2.0) and prot == 0.0
+    assert puff == pytest.approx(0.5)
+    # a JSON round trip keeps the map
+    back = InverseMap.from_json(imap.to_json())
+    np.testing.assert_array_equal(back.matrix, M)
+    assert back.inputs == inputs
