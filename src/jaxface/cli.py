@@ -64,6 +64,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "jaxface.commands.clone",
     "jaxface.commands.convert",
     "jaxface.commands.bench",
+    "jaxface.commands.landmarks",
 )
 
 #: status and progress go to stderr so that stdout stays clean for data
