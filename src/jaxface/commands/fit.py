@@ -31,10 +31,12 @@ import typer
 __all__ = ["register", "run_fit"]
 
 
-def _load(path: Path, landmarks: Path | None, what: str):
-    """Load a scan with its landmarks (explicit file, or the .lm3 beside it)."""
-    from ..errors import DataNotFoundError, LandmarkError
+def _load(path: Path, landmarks: Path | None, what: str, auto: bool = False, notice=None):
+    """Load a scan with its landmarks (explicit file, or the .lm3 beside it); without either,
+    or with ``auto`` and no explicit file, the landmarks are detected (``notice`` says so)."""
+    from ..errors import DataNotFoundError
     from ..io import load_scan
+    from .landmarks import detect_for
 
     if not path.is_file():
         raise DataNotFoundError(f"{what} file not found: {path}")
@@ -42,12 +44,9 @@ def _load(path: Path, landmarks: Path | None, what: str):
         raise DataNotFoundError(f"landmark file of the {what} not found: {landmarks}")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        scan = load_scan(path, landmarks=landmarks)
+        scan = load_scan(path, landmarks=False if auto and landmarks is None else landmarks)
     if scan.landmarks is None:
-        raise LandmarkError(
-            f"no landmarks for the {what} {path}: expected {path.with_suffix('.lm3')} beside it, or "
-            f"give the file with --{'neutral' if what == 'neutral scan' else 'scan'}-landmarks."
-        )
+        scan = scan.with_landmarks(detect_for(scan, f"{what} {path.name}", notice).landmarks)
     return scan
 
 
@@ -88,6 +87,8 @@ def run_fit(
     progress=None,
     on_step=None,
     on_written=None,
+    landmarks: str = "file",
+    notice=None,
 ) -> list:
     """The library behind ``jaxface fit``: fit ``scans`` of the subject of ``neutral`` and
     write the results into ``out``. Returns the :class:`~jaxface.fit.pipeline.ExpressionFit`
@@ -98,6 +99,11 @@ def run_fit(
         on_step: optional ``(text) -> None`` called before each major step.
         on_written: optional ``(ExpressionFit, files) -> None`` called after each scan's files
             are written.
+        landmarks: ``"file"`` (default): the given or beside-the-scan ``.lm3``, detected
+            (:mod:`jaxface.detect`) for a scan that has none; ``"auto"``: detect for every scan
+            without an explicitly given ``.lm3``.
+        notice: optional ``(text) -> None`` told when landmarks are detected (default: a
+            warning).
     """
     from ..errors import FitError, LandmarkError
     from ..fit.pipeline import SubjectOptions, _stem, fit_expressions, prepare_subject
@@ -114,9 +120,14 @@ def run_fit(
         )
     step = on_step or (lambda s: None)
     step("reading the scans")
-    n_scan = _load(neutral, neutral_landmarks, "neutral scan")
+    auto = landmarks == "auto"
+    if landmarks not in ("file", "auto"):
+        raise LandmarkError(f"--landmarks {landmarks!r}: use 'file' or 'auto'.")
+    say = notice or (lambda s: warnings.warn(s, stacklevel=2))
+    n_scan = _load(neutral, neutral_landmarks, "neutral scan", auto, say)
     loaded = [
-        _load(p, scan_landmarks[i] if scan_landmarks else None, "scan") for i, p in enumerate(scans)
+        _load(p, scan_landmarks[i] if scan_landmarks else None, "scan", auto, say)
+        for i, p in enumerate(scans)
     ]
     stems = [_stem(s) for s in loaded]
     dup = sorted({s for s in stems if stems.count(s) > 1})
@@ -193,6 +204,12 @@ def register(app: typer.Typer) -> None:
             None, "--template-landmarks", help="Landmarks of --template (.lm3; default: beside it)."
         ),
         backend: str = typer.Option("pbd", "--backend", help="Simulation backend: pbd or ltw."),
+        landmarks: str = typer.Option(
+            "file",
+            "--landmarks",
+            help="'file': the .lm3 given or beside each scan, detected when there is none; "
+            "'auto': detect for every scan without an explicit --*-landmarks file.",
+        ),
         pictures: bool = typer.Option(
             False, "--pictures", help="Also write a before/after picture per scan."
         ),
@@ -352,6 +369,8 @@ def register(app: typer.Typer) -> None:
                 progress=on_progress,
                 on_step=on_step,
                 on_written=done,
+                landmarks=landmarks,
+                notice=lambda text: console.print(f"[cyan]note:[/] {text}", markup=True),
             )
         if quiet:
             return

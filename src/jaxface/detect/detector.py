@@ -2,8 +2,9 @@
 
 Units mm; the landmarks are returned in the scan's own frame, whatever it is. Pipeline
 (:func:`detect_landmarks`): coarse pose (:mod:`jaxface.detect.pose`), registration of the
-default head's face and landmark transfer (:mod:`jaxface.detect.transfer`), local
-refinement, visibility and confidence (:mod:`jaxface.detect.refine`), then the side check:
+default head's face and landmark transfer (:mod:`jaxface.detect.transfer`), eye and
+mouth refinement on the scan's relief (:mod:`jaxface.detect.slits`), surface snap, nose tip,
+visibility and confidence (:mod:`jaxface.detect.refine`), then the side check:
 the labels follow the detected anatomy (the subject's left is ``up x forward``), so when they
 fail :func:`jaxface.landmarks.check_side` in the scan's frame the frame is not jaxface's
 (+y up, face along +z, left at +x): it is mirrored or the face looks along -z, and a
@@ -25,6 +26,7 @@ from ..fit.register import Registration
 from ..landmarks import BOSPHORUS_LABELS, FACE_LABELS, Landmarks, check_side
 from .pose import PoseEstimate, estimate_pose
 from .refine import place_landmarks
+from .slits import refine_slits, scan_rim_vertices
 from .transfer import face_template, transfer_landmarks
 
 __all__ = ["Detection", "MirroredScanWarning", "detect_landmarks", "scan_arrays"]
@@ -85,13 +87,15 @@ def scan_arrays(scan) -> tuple[np.ndarray, np.ndarray]:
     return mesh_arrays(scan)
 
 
-def detect_landmarks(scan, *, warn: bool = True) -> Detection:
+def detect_landmarks(scan, *, warn: bool = True, refine: bool = True) -> Detection:
     """Find the Bosphorus landmarks on a scan that has none (see the module doc).
 
     Arguments:
         scan: :class:`jaxface.io.Scan`, :class:`jaxface.mesh.TriMesh`, ``trimesh.Trimesh``
             or ``(V, F)``; mm; any frame.
         warn: issue :class:`MirroredScanWarning` when the frame looks mirrored.
+        refine: refine the eye and mouth landmarks on the scan's relief
+            (:mod:`jaxface.detect.slits`); ``False`` keeps the transferred ones.
 
     Returns:
         :class:`Detection`.
@@ -107,10 +111,16 @@ def detect_landmarks(scan, *, warn: bool = True) -> Detection:
     pose = estimate_pose(index, np.asarray(tpl.mesh.vertices), tpl.normals, tpl.nose_tip)
     reg = transfer_landmarks(index, pose.transform, tpl)
     names = list(FACE_LABELS)
+    guesses = reg.landmarks.array(names)
+    if refine:
+        better = refine_slits(
+            index, dict(zip(names, guesses)), pose.left, pose.up, scan_rim_vertices(index)
+        )
+        guesses = np.stack([better.get(n, g) for n, g in zip(names, guesses)])
     placed = place_landmarks(
         index,
         names,
-        reg.landmarks.array(names),
+        guesses,
         reg.vertices,
         reg.residuals,
         reg.has_data,
