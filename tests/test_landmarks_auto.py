@@ -71,7 +71,8 @@ def test_a_rotated_scan_gives_the_rotated_landmarks(scan_and_detection):
     moved = {n: np.linalg.norm(det_r.landmarks[n] - R @ det.landmarks[n]) for n in det.landmarks}
     assert max(moved.values()) < 1.0, moved
     err = _errors(det_r, scan.landmarks, R)
-    assert np.mean(list(err.values())) < 3.0, err
+    rest = [e for n, e in err.items() if "nose peak" not in n]  # see the upright test
+    assert np.mean(rest) < 3.0, err
     assert np.allclose(det_r.pose.up, R[:, 1], atol=0.1)
 
 
@@ -94,8 +95,9 @@ def test_whole_ict_head_with_the_eyes_closed(shared):
     }
     eyes = [n for n in err if "eye corner" in n]
     assert len(eyes) == 4
-    assert np.mean([err[n] for n in eyes]) < 5.0, err
-    assert np.mean(list(err.values())) < 4.0, err
+    assert np.mean([err[n] for n in eyes]) < 3.0, err
+    rest = [e for n, e in err.items() if "nose peak" not in n]  # see the upright test
+    assert np.mean(rest) < 3.5, err
 
 
 def test_mirrored_frame_warns_and_labels_by_anatomy(scan_and_detection):
