@@ -66,6 +66,7 @@ def bench_detection(stems, root: Path) -> dict:
         v, f, _ = scan.mesh_arrays()
         v, f = np.asarray(v), np.asarray(f)
         truth = scan.landmarks
+        assert truth is not None, f"{stem}: no truth .lm3"
         for pose, (pitch, yaw) in POSES.items():
             R = rotation_from_euler(pitch, yaw)
             ff = f if pose == "upright" else _holes(v, f, truth, rng)
@@ -178,7 +179,7 @@ def bench_fit(stems, root: Path) -> dict:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     ap.add_argument("--stems", nargs="*", default=None, help="scan stems (default: all)")
     ap.add_argument("--fit", action="store_true", help="fit with truth vs detected landmarks")
     args = ap.parse_args()

@@ -116,7 +116,7 @@ def detect_landmarks(scan, *, warn: bool = True, refine: bool = True) -> Detecti
         better = refine_slits(
             index, dict(zip(names, guesses)), pose.left, pose.up, scan_rim_vertices(index)
         )
-        guesses = np.stack([better.get(n, g) for n, g in zip(names, guesses)])
+        guesses = np.stack([better[n] if n in better else g for n, g in zip(names, guesses)])
     placed = place_landmarks(
         index,
         names,
@@ -146,7 +146,8 @@ def detect_landmarks(scan, *, warn: bool = True, refine: bool = True) -> Detecti
             f"little of the face to place the Bosphorus landmarks.",
             missing=tuple(n for n in order if n not in vis),
         )
-    lm = Landmarks(vis, np.stack([placed[n].position for n in vis]))  # type: ignore[misc]
+    pos: list[np.ndarray] = [p for n in vis if (p := placed[n].position) is not None]
+    lm = Landmarks(vis, np.stack(pos))
     side = None
     try:
         check_side(lm)

@@ -19,7 +19,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
+from scipy.spatial import KDTree
 
 from ..fit.metrics import SurfaceIndex
 
@@ -51,7 +51,7 @@ def refine_nose_tip(index: SurfaceIndex, tip: np.ndarray, forward: np.ndarray) -
     """The scan vertex of largest ``p . forward`` within :data:`TIP_RADIUS_MM` of ``tip``
     (``(3,)`` mm); ``tip`` itself when no scan vertex is that close."""
     v = index.vertices
-    ids = cKDTree(v).query_ball_point(tip, TIP_RADIUS_MM)
+    ids = KDTree(v).query_ball_point(tip, TIP_RADIUS_MM)
     if not ids:
         return np.asarray(tip, float)
     ids = np.asarray(ids)
@@ -87,7 +87,7 @@ def place_landmarks(
         k = names.index("Nose tip")
         guesses[k] = refine_nose_tip(index, guesses[k], forward)
     cp = index.query(guesses)
-    tree = cKDTree(reg_vertices) if len(reg_vertices) else None
+    tree = KDTree(reg_vertices) if len(reg_vertices) else None
     out: dict[str, Placement] = {}
     for i, n in enumerate(names):
         gap = float(cp.distances[i])

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
-from scipy.spatial import cKDTree
+from scipy.spatial import KDTree
 
 from ..fit.metrics import SurfaceIndex
 
@@ -93,7 +93,7 @@ def refine_slits(
     used = np.zeros(len(v), bool)
     used[np.unique(index.triangles[index.active_ids])] = True
     rim = scan_rim_vertices(index) if rim is None else rim
-    tree = cKDTree(v[used])
+    tree = KDTree(v[used])
     used_ids = np.flatnonzero(used)
     out: dict[str, np.ndarray] = {}
     for s in _SLITS:
@@ -117,7 +117,7 @@ def refine_slits(
         cand = box[(conc > VALLEY_MM) | rim[box]]
         if cand.size < 3:
             continue
-        pairs = cKDTree(v[cand]).query_pairs(LINK_MM, output_type="ndarray")
+        pairs = KDTree(v[cand]).query_pairs(LINK_MM, output_type="ndarray")
         g = sp.coo_matrix(
             (np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(cand.size, cand.size)
         )
