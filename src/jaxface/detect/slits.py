@@ -16,9 +16,9 @@ Method (:func:`refine_slits`), per slit, in the face frame of the coarse pose (`
    nearest to the slit's centre and spans at least a third of the transferred width.
 4. **Corners** are its extreme points along ``left``; the inner lip midpoints (mouth) are its
    top and bottom points within 3 mm of the midline. A refined point further than the slit's
-   ``max_shift`` from the transferred one is not trusted (the transfer is kept), nor an eye
-   whose refined width differs from the transferred one by more than :data:`WIDTH_TOL` (the
-   valley merged with a hole or a crease).
+   ``max_shift`` from the transferred one is not trusted (the transfer is kept), nor a slit
+   whose width differs from the transferred one by more than 25 % (eyes) or 35 % (mouth):
+   the valley merged with a hole or a crease, or was cut short.
 """
 
 from __future__ import annotations
@@ -36,7 +36,6 @@ __all__ = ["refine_slits", "scan_rim_vertices"]
 
 VALLEY_MM = 0.3
 LINK_MM = 2.5
-WIDTH_TOL = 0.25
 
 
 @dataclass(frozen=True)
@@ -45,17 +44,19 @@ class _Slit:
     margin_mm: float
     half_height_mm: float
     max_shift_mm: float
+    width_tol: float  # accepted relative change of the slit's width
     midline: tuple[str, str] | None = None  # (upper, lower) midpoint labels
 
 
 _SLITS = (
-    _Slit(("Outer left eye corner", "Inner left eye corner"), 6.0, 6.0, 8.0),
-    _Slit(("Inner right eye corner", "Outer right eye corner"), 6.0, 6.0, 8.0),
+    _Slit(("Outer left eye corner", "Inner left eye corner"), 6.0, 6.0, 8.0, 0.25),
+    _Slit(("Inner right eye corner", "Outer right eye corner"), 6.0, 6.0, 8.0, 0.25),
     _Slit(
         ("Left mouth corner", "Right mouth corner"),
         15.0,
         18.0,
         22.0,
+        0.35,
         ("Upper lip inner middle", "Lower lip inner middle"),
     ),
 )
@@ -137,8 +138,8 @@ def refine_slits(
             continue
         pts, pu, pw = v[cand[best]], cu[best], cw[best]
         ratio = (pu.max() - pu.min()) / max(width, 1e-9)
-        if s.midline is None and not (1.0 - WIDTH_TOL <= ratio <= 1.0 + WIDTH_TOL):
-            continue  # an eye slit merged with a hole or a crease: keep the transfer
+        if not (1.0 - s.width_tol <= ratio <= 1.0 + s.width_tol):
+            continue  # merged with a hole or a crease, or cut short: keep the transfer
         for label, p in ((s.corners[0], pts[np.argmax(pu)]), (s.corners[1], pts[np.argmin(pu)])):
             if np.linalg.norm(p - guesses[label]) <= s.max_shift_mm:
                 out[label] = p.copy()
