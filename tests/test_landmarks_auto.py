@@ -163,6 +163,8 @@ def test_fit_loader_detects_forces_and_prefers_an_explicit_file(tmp_path, shared
     assert told and beside.landmarks is not None and len(beside.landmarks) >= 15
 
 
+@pytest.mark.slow
+@pytest.mark.timeout(1800)
 def test_cli_fit_on_a_scan_without_landmarks(tmp_path, shared):
     root = shared("data", "bosphorus_style")
     link = tmp_path / "bs900_N_N_0.bnt"
