@@ -7,7 +7,9 @@ Contract (other tools call it; keep it stable)::
                 [--template FACE.ply --template-landmarks FACE.lm3] [--backend pbd|ltw]
                 --out DIR [--pictures]
 
-Landmark files default to the scan path with suffix ``.lm3``. Several ``--scan`` options fit a
+Landmark files default to the scan path with suffix ``.lm3``; a scan without one gets
+detected landmarks (:mod:`jaxface.detect`, with a note), and ``--landmarks auto`` detects for
+every scan without an explicit file. Several ``--scan`` options fit a
 batch (solved together in one compiled call) with a progress bar. Per scan it writes
 ``DIR/<scan-stem>.json`` (keys: ``activations``, ``au_intensities``, ``au_motion_mm``, ``au_sparse``, ``jaw``, ``rigid``,
 ``metrics``, ``baselines``, ``solver``, ``frame``; see :class:`jaxface.fit.pipeline.ExpressionFit`)
