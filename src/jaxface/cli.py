@@ -67,6 +67,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "jaxface.commands.convert",
     "jaxface.commands.bench",
     "jaxface.commands.export",
+    "jaxface.commands.landmarks",
 )
 
 #: status and progress go to stderr so that stdout stays clean for data

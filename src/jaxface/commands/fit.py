@@ -7,7 +7,9 @@ Contract (other tools call it; keep it stable)::
                 [--template FACE.ply --template-landmarks FACE.lm3] [--backend pbd|ltw]
                 --out DIR [--pictures]
 
-Landmark files default to the scan path with suffix ``.lm3``. Several ``--scan`` options fit a
+Landmark files default to the scan path with suffix ``.lm3``; a scan without one gets
+detected landmarks (:mod:`jaxface.detect`, with a note), and ``--landmarks auto`` detects for
+every scan without an explicit file. Several ``--scan`` options fit a
 batch (solved together in one compiled call) with a progress bar. Per scan it writes
 ``DIR/<scan-stem>.json`` (keys: ``activations``, ``au_intensities``, ``au_motion_mm``, ``au_sparse``, ``jaw``, ``rigid``,
 ``metrics``, ``baselines``, ``solver``, ``frame``, ``quality``: coverage, identity, noise
@@ -33,24 +35,22 @@ import typer
 __all__ = ["register", "run_fit"]
 
 
-def _load(path: Path, landmarks: Path | None, what: str):
-    """Load a scan with its landmarks (explicit file, or the .lm3 beside it)."""
-    from ..errors import LandmarkError
+def _load(path: Path, landmarks: Path | None, what: str, auto: bool = False, notice=None):
+    """Load a scan with its landmarks (explicit file, or the .lm3 beside it); without either,
+    or with ``auto`` and no explicit file, the landmarks are detected (``notice`` says so)."""
     from ..io import load_scan
     from ..mesh import check_input_file
+    from .landmarks import detect_for
 
     check_input_file(path, f"{what} file")
     if landmarks is not None:
         check_input_file(landmarks, f"landmark file of the {what}")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        scan = load_scan(path, landmarks=landmarks)
+        scan = load_scan(path, landmarks=False if auto and landmarks is None else landmarks)
     _show_label_warnings(caught)
     if scan.landmarks is None:
-        raise LandmarkError(
-            f"no landmarks for the {what} {path}: expected {path.with_suffix('.lm3')} beside it, or "
-            f"give the file with --{'neutral' if what == 'neutral scan' else 'scan'}-landmarks."
-        )
+        scan = scan.with_landmarks(detect_for(scan, f"{what} {path.name}", notice).landmarks)
     return scan
 
 
@@ -102,6 +102,8 @@ def run_fit(
     on_step=None,
     on_written=None,
     arkit="auto",
+    landmarks: str = "file",
+    notice=None,
 ) -> list:
     """The library behind ``jaxface fit``: fit ``scans`` of the subject of ``neutral`` and
     write the results into ``out``. Returns the :class:`~jaxface.fit.pipeline.ExpressionFit`
@@ -114,6 +116,11 @@ def run_fit(
             are written.
         arkit: ICT data of the ARKit readout (``"auto"``, a path, None = off; see
             :func:`jaxface.fit.pipeline.fit_expressions`).
+        landmarks: ``"file"`` (default): the given or beside-the-scan ``.lm3``, detected
+            (:mod:`jaxface.detect`) for a scan that has none; ``"auto"``: detect for every scan
+            without an explicitly given ``.lm3``.
+        notice: optional ``(text) -> None`` told when landmarks are detected (default: a
+            warning).
     """
     from ..atomic import ensure_out_dir
     from ..errors import FitError, LandmarkError
@@ -136,9 +143,14 @@ def run_fit(
         raise DataNotFoundError(f"--ict {arkit}: no such file (ICT-FaceKit ict_face.npz).")
     step = on_step or (lambda s: None)
     step("reading the scans")
-    n_scan = _load(neutral, neutral_landmarks, "neutral scan")
+    auto = landmarks == "auto"
+    if landmarks not in ("file", "auto"):
+        raise LandmarkError(f"--landmarks {landmarks!r}: use 'file' or 'auto'.")
+    say = notice or (lambda s: warnings.warn(s, stacklevel=2))
+    n_scan = _load(neutral, neutral_landmarks, "neutral scan", auto, say)
     loaded = [
-        _load(p, scan_landmarks[i] if scan_landmarks else None, "scan") for i, p in enumerate(scans)
+        _load(p, scan_landmarks[i] if scan_landmarks else None, "scan", auto, say)
+        for i, p in enumerate(scans)
     ]
     stems = [_stem(s) for s in loaded]
     dup = sorted({s for s in stems if stems.count(s) > 1})
@@ -221,6 +233,12 @@ def register(app: typer.Typer) -> None:
             None, "--template-landmarks", help="Landmarks of --template (.lm3; default: beside it)."
         ),
         backend: str = typer.Option("pbd", "--backend", help="Simulation backend: pbd or ltw."),
+        landmarks: str = typer.Option(
+            "file",
+            "--landmarks",
+            help="'file': the .lm3 given or beside each scan, detected when there is none; "
+            "'auto': detect for every scan without an explicit --*-landmarks file.",
+        ),
         pictures: bool = typer.Option(
             False, "--pictures", help="Also write a before/after picture per scan."
         ),
@@ -389,6 +407,8 @@ def register(app: typer.Typer) -> None:
                 on_step=on_step,
                 on_written=done,
                 arkit=None if no_arkit else (ict if ict is not None else "auto"),
+                landmarks=landmarks,
+                notice=lambda text: console.print(f"[cyan]note:[/] {text}", markup=True),
             )
         for r in results:  # shown even with --quiet: the result may be meaningless
             q = getattr(r, "quality", None)

@@ -274,7 +274,9 @@ def register(app: typer.Typer) -> None:
             None, "--mesh", help="Face mesh (.ply/.obj) instead of the embedded default head."
         ),
         landmarks: Path | None = typer.Option(  # noqa: UP007
-            None, "--landmarks", help="Its .lm3 landmarks (default: beside the mesh)."
+            None,
+            "--landmarks",
+            help="Its .lm3 landmarks (default: beside the mesh, else detected); 'auto' detects.",
         ),
         units: Units = typer.Option(Units.mm, "--units", help="Units of --mesh and --landmarks."),
         out_units: Units = typer.Option(
@@ -383,7 +385,17 @@ def register(app: typer.Typer) -> None:
             else:
                 from .clone import load_face
 
-                m, lm = load_face(mesh, units.value, landmarks, "face mesh", clean=True)
+                if str(landmarks) == "auto" or (
+                    landmarks is None and not mesh.with_suffix(".lm3").is_file()
+                ):
+                    from ..mesh import load_mesh
+                    from .landmarks import detect_for
+
+                    m = load_mesh(mesh, units=units.value, validate=False)
+                    note = lambda t: console.print(f"[cyan]note:[/] {t}", markup=True)  # noqa: E731
+                    lm = detect_for(m, f"face mesh {mesh.name}", note).landmarks
+                else:
+                    m, lm = load_face(mesh, units.value, landmarks, "face mesh", clean=True)
                 rig_args = (m, lm)
             step(f"building the {backend} rig (skull, jaw, muscles)")
             rig = build_rig(*rig_args, backend=backend)

@@ -1,0 +1,184 @@
+"""Automatic landmarks (:mod:`jaxface.detect`, ``jaxface landmarks``, the fit/synth hooks)
+against the ground truth of the shared Bosphorus-style scans and the ICT model: a scan in its
+own frame, the same scan rotated (yaw 30, pitch 20 degrees), a whole ICT head with the eyes
+closed, a mirrored frame (warning), non-face meshes (typed error) and ``jaxface fit`` on a
+scan without a landmark file."""
+
+import json
+import subprocess
+import sys
+import warnings
+
+import numpy as np
+import pytest
+import trimesh
+
+from jaxface.detect import MirroredScanWarning, NoFaceFoundError, detect_landmarks
+from jaxface.errors import LandmarkError
+from jaxface.fit.align import rotation_from_euler
+from jaxface.landmarks import FACE_LABELS, check_side, read_lm3
+
+STEM = "bs900_N_N_0"
+
+
+def _errors(det, truth, R=np.eye(3)):
+    """label -> distance (mm) detected vs truth (rotated by R) over the common labels."""
+    return {
+        n: float(np.linalg.norm(det.landmarks[n] - R @ truth[n]))
+        for n in det.landmarks.names
+        if n in truth
+    }
+
+
+@pytest.fixture(scope="module")
+def scan_and_detection():
+    from jaxface.io import load_scan
+    from jaxface.testing import shared_path
+
+    root = shared_path("data", "bosphorus_style")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        scan = load_scan(root / f"{STEM}.bnt")
+    v, f, _ = scan.mesh_arrays()
+    return scan, np.asarray(v), np.asarray(f), detect_landmarks((v, f))
+
+
+def test_detects_the_bosphorus_landmarks_of_a_scan_without_landmarks(scan_and_detection):
+    scan, _, _, det = scan_and_detection
+    err = _errors(det, scan.landmarks)
+    assert len(err) >= 18
+    assert set(det.omitted) >= {"Left ear lobe", "Right ear lobe"}  # frontal scan: no ears
+    assert all(isinstance(r, str) and r for r in det.omitted.values())
+    # the default head's nose peaks sit on the alae, the ICT truth's ~10 mm more lateral (a
+    # definition difference, see docs/landmarks.md): bounded apart
+    peaks = {n: e for n, e in err.items() if "nose peak" in n}
+    rest = {n: e for n, e in err.items() if n not in peaks}
+    assert np.mean(list(rest.values())) < 3.0, err
+    assert max(rest.values()) < 5.0, err
+    assert max(peaks.values(), default=0.0) < 14.0, err
+    assert all(0.0 <= c <= 1.0 for c in det.confidence.values())
+    check_side(det.landmarks)  # jaxface frame: no mirror problem
+    assert det.side_problem is None
+    assert np.allclose(det.pose.up, [0, 1, 0], atol=0.1)
+    assert np.allclose(det.pose.forward, [0, 0, 1], atol=0.1)
+
+
+def test_a_rotated_scan_gives_the_rotated_landmarks(scan_and_detection):
+    scan, v, f, det = scan_and_detection
+    R = rotation_from_euler(20.0, 30.0)
+    det_r = detect_landmarks((v @ R.T, f))
+    assert set(det_r.landmarks.names) == set(det.landmarks.names)
+    moved = {n: np.linalg.norm(det_r.landmarks[n] - R @ det.landmarks[n]) for n in det.landmarks}
+    assert max(moved.values()) < 1.0, moved
+    err = _errors(det_r, scan.landmarks, R)
+    rest = [e for n, e in err.items() if "nose peak" not in n]  # see the upright test
+    assert np.mean(rest) < 3.0, err
+    assert np.allclose(det_r.pose.up, R[:, 1], atol=0.1)
+
+
+def test_whole_ict_head_with_the_eyes_closed(shared):
+    """The ICT head (face + scalp + neck: a whole head, not a range scan) with both eyes
+    closed (eyeBlink_L + eyeBlink_R) and the mouth closed; truth = the ICT landmark vertices."""
+    d = np.load(shared("data", "ict", "ict_face.npz"))
+    ids = json.loads(shared("data", "bosphorus_style", "truth.json").read_text())[
+        "landmark_vertex_ids_ict"
+    ]
+    names = [str(n) for n in d["expression_names"]]
+    v = d["neutral"] + sum(
+        d["expression_deltas"][names.index(k)] for k in ("eyeBlink_L", "eyeBlink_R")
+    )
+    groups = [str(g) for g in d["group_names"]]
+    keep = np.isin(d["triangle_group"], [groups.index("face"), groups.index("head_neck")])
+    det = detect_landmarks((v, d["triangles"][keep]))
+    err = {
+        n: float(np.linalg.norm(det.landmarks[n] - v[ids[n]])) for n in det.landmarks if n in ids
+    }
+    eyes = [n for n in err if "eye corner" in n]
+    assert len(eyes) == 4
+    assert np.mean([err[n] for n in eyes]) < 3.0, err
+    rest = [e for n, e in err.items() if "nose peak" not in n]  # see the upright test
+    assert np.mean(rest) < 3.5, err
+
+
+def test_mirrored_frame_warns_and_labels_by_anatomy(scan_and_detection):
+    _, v, f, det = scan_and_detection
+    flip = np.array([1.0, 1.0, -1.0])  # a mirror: the face now looks along -z
+    with pytest.warns(MirroredScanWarning, match="mirrored"):
+        det_m = detect_landmarks((v * flip, f[:, ::-1]))
+    assert det_m.side_problem is not None
+    with pytest.raises(LandmarkError):
+        check_side(det_m.landmarks)
+    # the subject's left (up x forward) is -x here: the labels swap sides, the points do not
+    a = det_m.landmarks["Outer left eye corner"] * flip
+    assert np.linalg.norm(a - det.landmarks["Outer right eye corner"]) < 2.0
+
+
+@pytest.mark.parametrize("kind", ["sphere", "box"])
+def test_a_non_face_mesh_is_a_clear_error(kind):
+    m = (
+        trimesh.creation.icosphere(subdivisions=4, radius=90.0)
+        if kind == "sphere"
+        else trimesh.creation.box(extents=(150.0, 200.0, 120.0))
+    )
+    if kind == "box":
+        m = m.subdivide().subdivide().subdivide()
+    with pytest.raises(NoFaceFoundError, match="no face found"):
+        detect_landmarks((np.asarray(m.vertices), np.asarray(m.faces)))
+
+
+def test_cli_writes_lm3_json_and_picture(tmp_path, shared):
+    from jaxface.cli import main
+
+    src = shared("data", "bosphorus_style", "bs901_LFAU_12_0.bnt")
+    out = tmp_path / "x.lm3"
+    assert main(["landmarks", str(src), "--out", str(out), "--pictures"]) == 0
+    lm = read_lm3(out)
+    info = json.loads(out.with_suffix(".json").read_text())
+    assert set(lm.names) == set(info["confidence"])
+    assert set(lm.names) | set(info["omitted"]) == set(FACE_LABELS) | {
+        "Left ear lobe",
+        "Right ear lobe",
+    }
+    assert out.with_suffix(".png").stat().st_size > 10_000
+    truth = read_lm3(src.with_suffix(".lm3"))
+    err = [np.linalg.norm(lm[n] - truth[n]) for n in lm.names if n in truth]
+    assert np.median(err) < 4.0
+
+
+def test_fit_loader_detects_forces_and_prefers_an_explicit_file(tmp_path, shared):
+    from jaxface.commands.fit import _load
+
+    src = shared("data", "bosphorus_style", "bs900_UFAU_1_0.bnt")
+    file_lm = read_lm3(src.with_suffix(".lm3"))
+    told: list[str] = []
+    forced = _load(src, None, "scan", auto=True, notice=told.append)
+    assert told and "detected" in told[0]
+    assert forced.landmarks != file_lm
+    told.clear()
+    explicit = _load(src, src.with_suffix(".lm3"), "scan", auto=True, notice=told.append)
+    assert explicit.landmarks == file_lm and not told  # an explicit .lm3 wins
+    link = tmp_path / src.name
+    link.symlink_to(src)  # no .lm3 beside the link
+    beside = _load(link, None, "scan", notice=told.append)
+    assert told and beside.landmarks is not None and len(beside.landmarks) >= 15
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(1800)
+def test_cli_fit_on_a_scan_without_landmarks(tmp_path, shared):
+    root = shared("data", "bosphorus_style")
+    link = tmp_path / "bs900_N_N_0.bnt"
+    link.symlink_to(root / "bs900_N_N_0.bnt")  # the neutral has no .lm3 beside it
+    fast = ["--points", "400", "--outer-iterations", "1", "--levels", "1"]
+    fast += ["--pitch-knots", "6", "--max-steps", "10"]
+    proc = subprocess.run(
+        [sys.executable, "-m", "jaxface.cli", "fit", "--neutral", str(link)]
+        + ["--scan", str(root / "bs900_LFAU_12_0.bnt"), "--out", str(tmp_path / "o"), *fast],
+        capture_output=True,
+        text=True,
+        timeout=1200,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "detected" in proc.stderr
+    res = json.loads((tmp_path / "o" / "bs900_LFAU_12_0.json").read_text())
+    assert res["au_intensities"]
