@@ -28,11 +28,13 @@ from typing import List
 
 import typer
 
-__all__ = ["register", "run_fit"]
+__all__ = ["register", "run_fit", "load_fit_scan", "prepare_fit_subject", "fit_and_write"]
 
 
-def _load(path: Path, landmarks: Path | None, what: str):
-    """Load a scan with its landmarks (explicit file, or the .lm3 beside it)."""
+def load_fit_scan(path: Path, landmarks: Path | None = None, what: str = "scan"):
+    """Load a scan with its landmarks (explicit file, or the .lm3 beside it), as ``jaxface fit``
+    does: :class:`~jaxface.errors.DataNotFoundError` for a missing file,
+    :class:`~jaxface.errors.LandmarkError` when there are no landmarks."""
     from ..errors import DataNotFoundError, LandmarkError
     from ..io import load_scan
 
@@ -100,8 +102,7 @@ def run_fit(
             are written.
     """
     from ..errors import FitError, LandmarkError
-    from ..fit.pipeline import SubjectOptions, _stem, fit_expressions, prepare_subject
-    from ..fit.solve import FitOptions
+    from ..fit.pipeline import _stem
 
     if backend not in ("pbd", "ltw"):
         raise FitError(f"--backend {backend!r}: use 'pbd' or 'ltw'.")
@@ -114,9 +115,10 @@ def run_fit(
         )
     step = on_step or (lambda s: None)
     step("reading the scans")
-    n_scan = _load(neutral, neutral_landmarks, "neutral scan")
+    n_scan = load_fit_scan(neutral, neutral_landmarks, "neutral scan")
     loaded = [
-        _load(p, scan_landmarks[i] if scan_landmarks else None, "scan") for i, p in enumerate(scans)
+        load_fit_scan(p, scan_landmarks[i] if scan_landmarks else None, "scan")
+        for i, p in enumerate(scans)
     ]
     stems = [_stem(s) for s in loaded]
     dup = sorted({s for s in stems if stems.count(s) > 1})
@@ -124,18 +126,72 @@ def run_fit(
         raise FitError(
             f"several --scan files share the stem(s) {dup}; their outputs would overwrite each other."
         )
+    step("building the subject's rig (registration, skull, muscles, reduced model)")
+    subject = prepare_fit_subject(
+        n_scan,
+        template=template,
+        template_landmarks=template_landmarks,
+        backend=backend,
+        subject_options=subject_options,
+        progress=progress,
+    )
+    step(f"fitting {len(loaded)} scan(s)")
+    return fit_and_write(
+        subject,
+        loaded,
+        out,
+        options=options,
+        pictures=pictures,
+        batch_size=batch_size,
+        progress=progress,
+        on_written=on_written,
+    )
+
+
+def prepare_fit_subject(
+    neutral,
+    *,
+    template: Path | None = None,
+    template_landmarks: Path | None = None,
+    backend: str = "pbd",
+    subject_options=None,
+    progress=None,
+):
+    """The subject of ``jaxface fit``: its rig built once from the loaded ``neutral`` scan
+    (:func:`load_fit_scan`) on ``template`` (default: the built-in head); returns the
+    :class:`~jaxface.fit.pipeline.Subject` that :func:`fit_and_write` fits scans with."""
+    from ..fit.pipeline import SubjectOptions, prepare_subject
+
     tmesh, tlm = _template(template, template_landmarks)
     sopt = subject_options or SubjectOptions(backend=backend)
     if sopt.backend != backend:
         from dataclasses import replace
 
         sopt = replace(sopt, backend=backend)
-    step("building the subject's rig (registration, skull, muscles, reduced model)")
-    subject = prepare_subject(
-        n_scan, template=tmesh, template_landmarks=tlm, options=sopt, progress=progress
+    return prepare_subject(
+        neutral, template=tmesh, template_landmarks=tlm, options=sopt, progress=progress
     )
+
+
+def fit_and_write(
+    subject,
+    loaded: list,
+    out: Path,
+    *,
+    options=None,
+    pictures: bool = False,
+    batch_size: int | None = None,
+    progress=None,
+    on_written=None,
+) -> list:
+    """Fit the loaded scans of ``subject`` (:func:`prepare_fit_subject`) as ``jaxface fit``
+    does (one batch, or ``batch_size`` at a time) and write each scan's ``<stem>.json`` and
+    ``<stem>.fitted.ply`` into ``out``; ``on_written(ExpressionFit, files)`` after each.
+    Returns the :class:`~jaxface.fit.pipeline.ExpressionFit` list in the order of ``loaded``."""
+    from ..fit.pipeline import fit_expressions
+    from ..fit.solve import FitOptions
+
     out.mkdir(parents=True, exist_ok=True)
-    step(f"fitting {len(loaded)} scan(s)")
     results = fit_expressions(
         subject,
         loaded,
