@@ -17,13 +17,24 @@ import csv
 import json
 import os
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
 import typer.main
 
+from jaxface.cli import main
+from jaxface.commands import fit, fitdb
+from jaxface.commands.fit import run_fit
 from jaxface.errors import DataNotFoundError, ScanFormatError
+from jaxface.fit.pipeline import SubjectOptions
+from jaxface.fit.solve import FitOptions
 from jaxface.fitdb.discover import discover_database, read_manifest
+from jaxface.fitdb.runner import ClusterSpec, pending_jobs, run_database
+from jaxface.fitdb.table import read_table, summarise
+from jaxface.fitdb.task import CRASH_ONCE_ENV, FitSettings
+from jaxface.mesh import load_mesh
+from jaxface.testing import shared_path
 
 CONTROLS = ("zygomaticus_major_L", "zygomaticus_major_R")
 FITTED = ("bs900_LFAU_12_0", "bs901_LFAU_12_0")
@@ -36,9 +47,6 @@ def _link_scan(src_dir, dst_dir, stem):
 
 
 def _quick_settings():
-    from jaxface.fit.pipeline import SubjectOptions
-    from jaxface.fit.solve import FitOptions
-    from jaxface.fitdb.task import FitSettings
 
     return FitSettings(
         options=FitOptions(
@@ -78,8 +86,14 @@ def test_flat_and_subject_folder_layouts_give_the_same_jobs(tmp_path, shared):
         ("bs900_LFAU_12_0", "LFAU_12"),
     ]
     assert a[2].neutral is None and [e.stem for e in a[2].scans] == ["bs902_LFAU_9_0"]
-    key = [(j.subject, j.neutral.name, [(e.stem, e.code) for e in j.scans]) for j in a[:2]]
-    assert key == [(j.subject, j.neutral.name, [(e.stem, e.code) for e in j.scans]) for j in b]
+
+    def key(jobs):
+        return [
+            (j.subject, Path(j.neutral or "").name, [(e.stem, e.code) for e in j.scans])
+            for j in jobs
+        ]
+
+    assert key(a[:2]) == key(b)
 
 
 def test_manifest_reads_relative_paths_and_rejects_bad_ones(tmp_path):
@@ -119,7 +133,6 @@ def test_manifest_reads_relative_paths_and_rejects_bad_ones(tmp_path):
 
 
 def test_fit_db_has_every_fit_option_of_jaxface_fit_with_its_default():
-    from jaxface.commands import fit, fitdb
 
     def params(mod):
         app = typer.Typer()
@@ -141,10 +154,6 @@ def test_fit_db_has_every_fit_option_of_jaxface_fit_with_its_default():
 # ------------------------------------------------------------------------------ one cluster run
 @pytest.fixture(scope="module")
 def db_run(tmp_path_factory):
-    from jaxface.commands.fit import run_fit
-    from jaxface.fitdb.runner import ClusterSpec, run_database
-    from jaxface.fitdb.task import CRASH_ONCE_ENV
-    from jaxface.testing import shared_path
 
     src = shared_path("data", "bosphorus_style")
     tmp = tmp_path_factory.mktemp("fitdb")
@@ -195,8 +204,9 @@ def db_run(tmp_path_factory):
 
 
 @pytest.mark.data
+@pytest.mark.slow
+@pytest.mark.timeout(1800)  # the fixture: a 2-worker cluster run, minutes
 def test_every_scan_has_a_row_and_the_corrupt_one_says_why(db_run):
-    from jaxface.fitdb.table import read_table
 
     rep = db_run["report"]
     assert (rep.scans, rep.fitted, rep.failed, rep.skipped, rep.pending) == (3, 2, 1, 0, 0)
@@ -222,8 +232,9 @@ def test_every_scan_has_a_row_and_the_corrupt_one_says_why(db_run):
 
 
 @pytest.mark.data
+@pytest.mark.slow
+@pytest.mark.timeout(1800)  # the fixture: a 2-worker cluster run, minutes
 def test_per_scan_files_equal_the_in_process_jaxface_fit(db_run):
-    from jaxface.mesh import load_mesh
 
     stem = FITTED[0]
     got = json.loads((db_run["out"] / "bs900" / f"{stem}.json").read_text())
@@ -254,8 +265,9 @@ def test_per_scan_files_equal_the_in_process_jaxface_fit(db_run):
 
 
 @pytest.mark.data
+@pytest.mark.slow
+@pytest.mark.timeout(1800)  # the fixture: a 2-worker cluster run, minutes
 def test_a_worker_killed_mid_run_has_its_subject_retried(db_run):
-    from jaxface.fitdb.table import read_table
 
     # the first attempt of bs901 ended its worker process (the hook wrote the marker first)
     assert db_run["marker"].exists()
@@ -265,8 +277,9 @@ def test_a_worker_killed_mid_run_has_its_subject_retried(db_run):
 
 
 @pytest.mark.data
+@pytest.mark.slow
+@pytest.mark.timeout(1800)  # the fixture: a 2-worker cluster run, minutes
 def test_parquet_columns_match_the_per_scan_json(db_run):
-    from jaxface.fitdb.table import read_table
 
     tab = read_table(db_run["out"] / "results.parquet")
     cols = tab.column_names
@@ -301,7 +314,6 @@ def test_parquet_columns_match_the_per_scan_json(db_run):
 
 
 def _cli(args, capsys):
-    from jaxface.cli import main
 
     code = main(args)
     return code, capsys.readouterr().err
@@ -312,12 +324,25 @@ def _stamp(out):
 
 
 @pytest.mark.data
+@pytest.mark.slow
+@pytest.mark.timeout(1800)  # the fixture: a 2-worker cluster run, minutes
 def test_resume_from_the_folder_and_from_a_manifest_fits_nothing(db_run, capsys):
-    from jaxface.fitdb.table import read_table
 
     out = db_run["out"]
     before = read_table(out).to_pylist()
+    jobs = discover_database(db_run["db"])
+    # done: the fitted scans and the recorded failure; --retry-failed would run the failure
+    assert pending_jobs(jobs, out, resume=True) == ([], 3)
+    todo, skipped = pending_jobs(jobs, out, resume=True, retry_failed=True)
+    assert [[e.stem for e in j.scans] for j in todo] == [[CORRUPT]] and skipped == 2
+    assert sum(len(j.scans) for j in pending_jobs(jobs, out, resume=False)[0]) == 3
     files = _stamp(out)
+    # what a killed run leaves behind: a staging folder and a temporary file
+    (out / "bs900" / ".staging-dead").mkdir()
+    (out / "bs900" / ".staging-dead" / f"{FITTED[0]}.json").write_text("{")
+    (out / "bs901" / ".bs901_LFAU_12_0.json.0123.tmp").write_text("{")
+    orphan = out / "bs901" / "bs901_UFAU_2_0.fitted.ply"  # renamed, but no record yet
+    orphan.write_text("ply")
     code, err = _cli(["fit-db", str(db_run["db"]), "--out", str(out)], capsys)
     assert code == 0, err
     assert "fitted 0, failed 0, skipped 3" in " ".join(err.split()), err
@@ -335,11 +360,13 @@ def test_resume_from_the_folder_and_from_a_manifest_fits_nothing(db_run, capsys)
     # no scan file was written again (only the table)
     changed = {p for p, t in _stamp(out).items() if files.get(p) != t}
     assert changed <= {out / "results.parquet"}, changed
+    assert not [p for p in out.rglob(".*")] and not orphan.exists()  # leftovers removed
 
 
 @pytest.mark.data
+@pytest.mark.slow
+@pytest.mark.timeout(1800)  # the fixture: a 2-worker cluster run, minutes
 def test_summary_prints_the_table_per_code(db_run, capsys):
-    from jaxface.fitdb.table import read_table, summarise
 
     code, err = _cli(["fit-db", "--summary", str(db_run["out"])], capsys)
     assert code == 0, err

@@ -8,14 +8,16 @@ Per scan, under ``DIR/<subject>/``:
   "wall_s", "subject_wall_s", "worker"}``.
 
 Every file is written to a temporary name in the same folder and renamed into place
-(``os.replace``, atomic on POSIX), in the order ply, json, record: a scan is *complete*
-(:func:`is_complete`) when its record says ``fitted`` and both other files exist, so an
-interrupted run leaves either a complete scan or one that the next run fits again. A failed
-scan's record holds the reason; it counts as done (:func:`is_done`) unless the failures are
-to be tried again (``jaxface fit-db --retry-failed``).
+(``os.replace``, atomic on POSIX), in this order: the old record deleted, ply, json, the new
+record. A scan is *complete* (:func:`is_complete`) when its record says ``fitted`` and both
+other files exist, so an interrupted run leaves either a complete scan or one that the next
+run fits again. A failed scan's record holds the reason (and the scan keeps no fit files);
+it counts as done (:func:`is_done`) unless the failures are to be tried again
+(``jaxface fit-db --retry-failed``).
 
 Temporary names start with ``.`` (``.<name>.<random>.tmp``, staging folders
-``.staging-<random>``); :func:`remove_stale` deletes those a killed run left behind.
+``.staging-<random>``); :func:`remove_stale` deletes those a killed run left behind, and the
+fit files of scans without a ``fitted`` record.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import tempfile
+import uuid
 from pathlib import Path
 
 __all__ = [
@@ -41,6 +43,8 @@ __all__ = [
 ]
 
 RECORD_SUFFIX = ".fitdb.json"
+#: the files ``jaxface fit`` writes per scan (``<stem><suffix>``)
+FIT_SUFFIXES = (".fitted.ply", ".fit.png", ".json")
 STAGING_PREFIX = ".staging-"
 
 
@@ -63,7 +67,9 @@ def atomic_write_bytes(path: Path, data: bytes) -> Path:
     ``os.replace`` (readers see the old file or the whole new one, never a part)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    tmp = path.parent / f".{path.name}.{uuid.uuid4().hex}.tmp"
+    # mode 0o666 less the umask, as a plain open() would give the file
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
     try:
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
@@ -71,7 +77,7 @@ def atomic_write_bytes(path: Path, data: bytes) -> Path:
             os.fsync(fh.fileno())
         os.replace(tmp, path)
     except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+        tmp.unlink(missing_ok=True)
         raise
     return path
 
@@ -119,9 +125,10 @@ def is_done(out: Path, subject: str, stem: str, *, retry_failed: bool = False) -
 
 
 def remove_stale(out: Path) -> int:
-    """Delete the temporary files and staging folders a killed run left under
-    ``out/<subject>/``; returns how many were removed. Only call it while no worker writes
-    into ``out``."""
+    """Delete what an interrupted run left under ``out/<subject>/``: temporary files, staging
+    folders, and the fit files (``.json``, ``.fitted.ply``, ``.fit.png``) of scans whose
+    record does not say ``fitted`` (a run stopped between their renames). Returns how many
+    were removed. Only call it while no worker writes into ``out``."""
     n = 0
     out = Path(out)
     if not out.is_dir():
@@ -129,11 +136,17 @@ def remove_stale(out: Path) -> int:
     for sub in out.iterdir():
         if not sub.is_dir():
             continue
-        for p in sub.iterdir():
+        for p in list(sub.iterdir()):
             if p.name.startswith(STAGING_PREFIX) and p.is_dir():
                 shutil.rmtree(p, ignore_errors=True)
                 n += 1
             elif p.name.startswith(".") and p.name.endswith(".tmp") and p.is_file():
                 p.unlink(missing_ok=True)
                 n += 1
+            elif p.name.endswith(FIT_SUFFIXES) and not p.name.endswith(RECORD_SUFFIX):
+                stem = next(p.name[: -len(s)] for s in FIT_SUFFIXES if p.name.endswith(s))
+                rec = read_record(out, sub.name, stem)
+                if rec is None or rec.get("status") != "fitted":
+                    p.unlink(missing_ok=True)
+                    n += 1
     return n

@@ -129,6 +129,11 @@ def fit_subject(job: SubjectJob, settings: FitSettings, out: str | Path) -> list
             "subject_wall_s": None,
             "worker": worker,
         }
+        # a failed scan keeps no fit files of an earlier run (the table would disagree)
+        files = scan_files(out, job.subject, entry.stem)
+        files["record"].unlink(missing_ok=True)
+        files["ply"].unlink(missing_ok=True)
+        files["json"].unlink(missing_ok=True)
         write_record(out, rec)
         records[entry.stem] = rec
         _event(job.subject, entry.stem, "failed")
@@ -158,6 +163,8 @@ def fit_subject(job: SubjectJob, settings: FitSettings, out: str | Path) -> list
     def commit(result, files) -> None:
         entry = by_stem[result.stem]
         dst = scan_files(out, job.subject, entry.stem)
+        # no record while the files change: a stop in between leaves an incomplete scan
+        dst["record"].unlink(missing_ok=True)
         os.replace(files["ply"], dst["ply"])
         os.replace(files["json"], dst["json"])
         if "picture" in files:
