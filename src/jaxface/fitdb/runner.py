@@ -127,6 +127,21 @@ def pending_jobs(
     return todo, skipped
 
 
+#: Dask settings of a run (the whole run: some are read when used). A subject's task holds
+#: its worker busy for minutes (compiling, fitting) and a loaded machine answers slowly: the
+#: defaults (30 s without an answer on a connection, 5 minutes without a heartbeat) took
+#: busy workers for dead ones and removed them.
+DASK_CONFIG = {
+    "distributed.comm.timeouts.connect": "120s",
+    "distributed.comm.timeouts.tcp": "600s",
+    "distributed.scheduler.worker-ttl": None,
+    # a worker process never forks a parent that imported JAX
+    "distributed.worker.multiprocessing-method": "spawn",
+    # one subject per worker thread at a time (subjects are long; keep the rest queued)
+    "distributed.scheduler.worker-saturation": 1.0,
+}
+
+
 def _start_client(spec: ClusterSpec) -> tuple[Client, LocalCluster | None]:
     if spec.scheduler:
         return Client(spec.scheduler), None
@@ -134,23 +149,14 @@ def _start_client(spec: ClusterSpec) -> tuple[Client, LocalCluster | None]:
     dash: dict = (
         {} if importlib.util.find_spec("bokeh") is not None else {"dashboard_address": None}
     )
-    with dask.config.set(
-        {
-            # a worker process never forks a parent that imported JAX
-            "distributed.worker.multiprocessing-method": "spawn",
-            "distributed.scheduler.allowed-failures": spec.retries,
-            # one subject per worker thread at a time (subjects are long; keep the rest queued)
-            "distributed.scheduler.worker-saturation": 1.0,
-        }
-    ):
-        cluster = LocalCluster(
-            n_workers=spec.n_workers(),
-            threads_per_worker=spec.threads_per_worker,
-            processes=True,
-            **dash,
-            silence_logs=logging.ERROR,
-        )
-        return Client(cluster), cluster
+    cluster = LocalCluster(
+        n_workers=spec.n_workers(),
+        threads_per_worker=spec.threads_per_worker,
+        processes=True,
+        silence_logs=logging.ERROR,
+        **dash,
+    )
+    return Client(cluster), cluster
 
 
 def run_database(
@@ -213,6 +219,13 @@ def _absolute(settings: FitSettings) -> FitSettings:
 
 
 def _run(todo, out, settings, cluster, report, on_start, on_scan) -> None:
+    config = dict(DASK_CONFIG)
+    config["distributed.scheduler.allowed-failures"] = cluster.retries
+    with dask.config.set(config):
+        _run_configured(todo, out, settings, cluster, report, on_start, on_scan)
+
+
+def _run_configured(todo, out, settings, cluster, report, on_start, on_scan) -> None:
     n_scans = sum(len(j.scans) for j in todo)
     client, local = _start_client(cluster)
     seen: set[tuple[str, str]] = set()
