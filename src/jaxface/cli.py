@@ -63,6 +63,7 @@ EXIT_INTERRUPTED = 130
 COMMAND_MODULES: tuple[str, ...] = (
     "jaxface.commands.synth",
     "jaxface.commands.fit",
+    "jaxface.commands.fitdb",
     "jaxface.commands.clone",
     "jaxface.commands.convert",
     "jaxface.commands.bench",

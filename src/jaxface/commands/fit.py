@@ -32,12 +32,20 @@ from typing import List  # noqa: UP035 (typer options keep List[str], see UP006 
 
 import typer
 
-__all__ = ["register", "run_fit"]
+__all__ = ["register", "run_fit", "load_fit_scan", "prepare_fit_subject", "fit_and_write"]
 
 
-def _load(path: Path, landmarks: Path | None, what: str, auto: bool = False, notice=None):
-    """Load a scan with its landmarks (explicit file, or the .lm3 beside it); without either,
-    or with ``auto`` and no explicit file, the landmarks are detected (``notice`` says so)."""
+def load_fit_scan(
+    path: Path,
+    landmarks: Path | None = None,
+    what: str = "scan",
+    auto: bool = False,
+    notice=None,
+):
+    """Load a scan with its landmarks as ``jaxface fit`` does: the explicit ``.lm3``, or the
+    one beside the scan; without either, or with ``auto`` and no explicit file, the landmarks
+    are detected (:mod:`jaxface.detect`; ``notice(text)`` says so). A missing or unreadable
+    input is a :class:`~jaxface.errors.InputPathError` / :class:`~jaxface.errors.DataNotFoundError`."""
     from ..io import load_scan
     from ..mesh import check_input_file
     from .landmarks import detect_for
@@ -124,8 +132,7 @@ def run_fit(
     """
     from ..atomic import ensure_out_dir
     from ..errors import FitError, LandmarkError
-    from ..fit.options import FitOptions
-    from ..fit.pipeline import SubjectOptions, _stem, fit_expressions, prepare_subject
+    from ..fit.pipeline import _stem
 
     if backend not in ("pbd", "ltw"):
         raise FitError(f"--backend {backend!r}: use 'pbd' or 'ltw'.")
@@ -147,9 +154,9 @@ def run_fit(
     if landmarks not in ("file", "auto"):
         raise LandmarkError(f"--landmarks {landmarks!r}: use 'file' or 'auto'.")
     say = notice or (lambda s: warnings.warn(s, stacklevel=2))
-    n_scan = _load(neutral, neutral_landmarks, "neutral scan", auto, say)
+    n_scan = load_fit_scan(neutral, neutral_landmarks, "neutral scan", auto, say)
     loaded = [
-        _load(p, scan_landmarks[i] if scan_landmarks else None, "scan", auto, say)
+        load_fit_scan(p, scan_landmarks[i] if scan_landmarks else None, "scan", auto, say)
         for i, p in enumerate(scans)
     ]
     stems = [_stem(s) for s in loaded]
@@ -158,17 +165,77 @@ def run_fit(
         raise FitError(
             f"several --scan files share the stem(s) {dup}; their outputs would overwrite each other."
         )
+    step("building the subject's rig (registration, skull, muscles, reduced model)")
+    subject = prepare_fit_subject(
+        n_scan,
+        template=template,
+        template_landmarks=template_landmarks,
+        backend=backend,
+        subject_options=subject_options,
+        progress=progress,
+    )
+    step(f"fitting {len(loaded)} scan(s)")
+    return fit_and_write(
+        subject,
+        loaded,
+        out,
+        options=options,
+        pictures=pictures,
+        batch_size=batch_size,
+        progress=progress,
+        on_written=on_written,
+        arkit=arkit,
+    )
+
+
+def prepare_fit_subject(
+    neutral,
+    *,
+    template: Path | None = None,
+    template_landmarks: Path | None = None,
+    backend: str = "pbd",
+    subject_options=None,
+    progress=None,
+):
+    """The subject of ``jaxface fit``: its rig built once from the loaded ``neutral`` scan
+    (:func:`load_fit_scan`) on ``template`` (default: the built-in head); returns the
+    :class:`~jaxface.fit.pipeline.Subject` that :func:`fit_and_write` fits scans with."""
+    from ..fit.pipeline import SubjectOptions, prepare_subject
+
     tmesh, tlm = _template(template, template_landmarks)
     sopt = subject_options or SubjectOptions(backend=backend)
     if sopt.backend != backend:
         from dataclasses import replace
 
         sopt = replace(sopt, backend=backend)
-    step("building the subject's rig (registration, skull, muscles, reduced model)")
-    subject = prepare_subject(
-        n_scan, template=tmesh, template_landmarks=tlm, options=sopt, progress=progress
+    return prepare_subject(
+        neutral, template=tmesh, template_landmarks=tlm, options=sopt, progress=progress
     )
-    step(f"fitting {len(loaded)} scan(s)")
+
+
+def fit_and_write(
+    subject,
+    loaded: list,
+    out: Path,
+    *,
+    options=None,
+    pictures: bool = False,
+    batch_size: int | None = None,
+    progress=None,
+    on_written=None,
+    arkit="auto",
+) -> list:
+    """Fit the loaded scans of ``subject`` (:func:`prepare_fit_subject`) as ``jaxface fit``
+    does (one batch, or ``batch_size`` at a time) and write each scan's ``<stem>.json`` and
+    ``<stem>.fitted.ply`` into ``out``; ``on_written(ExpressionFit, files)`` after each.
+    ``arkit``: the ARKit readout's ICT data (:func:`jaxface.fit.pipeline.fit_expressions`).
+    Every call also fits the neutral to itself once, for the AU readout's noise floor.
+    Returns the :class:`~jaxface.fit.pipeline.ExpressionFit` list in the order of ``loaded``."""
+    from ..atomic import ensure_out_dir
+    from ..fit.options import FitOptions
+    from ..fit.pipeline import fit_expressions
+
+    ensure_out_dir(out)
     results = fit_expressions(
         subject,
         loaded,
