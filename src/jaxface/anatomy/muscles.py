@@ -500,7 +500,7 @@ def build_muscle_system(
     owner = np.concatenate([np.full(len(t), i) for i, (t, _, _) in enumerate(vol)])
     volume = pbd.make_group(
         pbd.volume_constraint(
-            tri, rest, origin=np.zeros(3), owner=owner, stiffness=[k for _, k, _ in vol]
+            tri, rest, origin=np.zeros(3), owner=owner, stiffness=np.asarray([k for _, k, _ in vol])
         ),
         n,
         name="muscle volume",

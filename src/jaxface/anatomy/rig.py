@@ -22,6 +22,8 @@ Units: mm, degrees (jaw angles); +y up, +z forward, subject's left +x.
 
 from __future__ import annotations
 
+from typing import Any, cast
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -131,6 +133,15 @@ class RigInfo:
         placed: the :class:`PlacedMuscle` list; specs: the :class:`MuscleSpec` list;
         binding: the skin :class:`~jaxface.anatomy.skin.Binding`; influence: ``(V,)``.
     """
+
+    skin: Any
+    landmarks: Any
+    frame: Any
+    skull: Any
+    placed: Any
+    specs: Any
+    binding: Any
+    influence: Any
 
     def __init__(self, **kw):
         self.__dict__.update(kw)
@@ -417,7 +428,8 @@ def build_rig(
             continue
         lid_ids, fall, upper = eyelid_vertices(mesh, frame, side, eyelid_threshold)
         pm = next(p for p in placed if p.kind == "eyelid" and p.spec.side == side)
-        eyelids.append((lid_ids, fall, upper, len(eyelids), pm.centre, pm.axes[0], angles))
+        axes = cast(np.ndarray, pm.axes)  # an eyelid's placement always has its axes
+        eyelids.append((lid_ids, fall, upper, len(eyelids), pm.centre, axes[0], angles))
     skin_sys = build_skin_system(
         mesh,
         frame,
@@ -652,7 +664,7 @@ def synthesize(rig: Rig, activations, jaw: JawPose | None = None, cheek_puff=0.0
     if rig.backend == "ltw":
         from ..ltw.rig import synthesize_ltw
 
-        return synthesize_ltw(rig, activations, jaw, cheek_puff)
+        return synthesize_ltw(cast(Any, rig), activations, jaw, cheek_puff)
     jaw = JawPose() if jaw is None else jaw
     return _synth(rig, activations, jaw, cheek_puff).skin
 

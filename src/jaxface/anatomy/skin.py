@@ -646,7 +646,7 @@ class SkinSystem(eqx.Module):
     volume: pbd.Group | None
     upper_hull: pbd.Group | None
     lower_hull: pbd.Group | None
-    lower_planes: tuple
+    lower_planes: tuple | None
     iterations: int = eqx.field(static=True, default=12)
     chebyshev_rho: float = eqx.field(static=True, default=0.0)
     fat_ratio: tuple = eqx.field(static=True, default=FAT_RATIO_RANGE)
@@ -689,7 +689,7 @@ def build_skin_system(
     influence: np.ndarray,
     eyelids: list,
     teeth=(None, None),
-    footprint_mm: float = 3.5,
+    footprint_mm: float | tuple = 3.5,
     footprint_cluster_mm: float = 0.0,
     stiffness: dict | None = None,
     bending: bool = True,
@@ -697,7 +697,7 @@ def build_skin_system(
     lid_stiffness: float = 0.9,
     puff_mm: float = 8.0,
     membrane: np.ndarray | None = None,
-    fat_volume: float = 0.0,
+    fat_volume: float | tuple = 0.0,
 ) -> SkinSystem:
     """Assemble the skin system (NumPy build time).
 
@@ -874,7 +874,7 @@ def build_skin_system(
     )
 
 
-def skin_targets(sk: SkinSystem, G, activations, cheek_puff=0.0):
+def skin_targets(sk: SkinSystem, G, activations, cheek_puff: jax.typing.ArrayLike = 0.0):
     """Anchor targets ``(V, 3)`` mm of the skin for the current support ``G``.
 
     Bound surface points evaluated on ``G``, offsets scaled by the fat layer's thickness
@@ -996,6 +996,7 @@ def solve_skin(sk: SkinSystem, targets, R, t, *, iterations: int | None = None, 
     if sk.upper_hull is not None:
         groups += (sk.upper_hull,)
     if sk.lower_hull is not None:
+        assert sk.lower_planes is not None  # built together with the lower hull
         n, d = pbd.transform_planes(
             sk.lower_planes[0].astype(dt), sk.lower_planes[1].astype(dt), R.astype(dt), t.astype(dt)
         )

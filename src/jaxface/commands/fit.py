@@ -109,7 +109,7 @@ def run_fit(
     progress=None,
     on_step=None,
     on_written=None,
-    arkit="auto",
+    arkit: object = "auto",
     landmarks: str = "file",
     notice=None,
 ) -> list:
@@ -223,7 +223,7 @@ def fit_and_write(
     batch_size: int | None = None,
     progress=None,
     on_written=None,
-    arkit="auto",
+    arkit: object = "auto",
 ) -> list:
     """Fit the loaded scans of ``subject`` (:func:`prepare_fit_subject`) as ``jaxface fit``
     does (one batch, or ``batch_size`` at a time) and write each scan's ``<stem>.json`` and

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike
 from scipy.spatial import ConvexHull, QhullError
 
 from ..errors import MeshError
@@ -31,7 +32,9 @@ __all__ = [
 ]
 
 
-def distance_constraints(pairs, x_rest=None, *, rest=None, stiffness=1.0, compliance=None):
+def distance_constraints(
+    pairs, x_rest=None, *, rest=None, stiffness: ArrayLike = 1.0, compliance=None
+):
     """Stretch constraints (eq. 3.15). See :meth:`DistanceConstraints.build`.
 
     Args:
@@ -46,7 +49,9 @@ def distance_constraints(pairs, x_rest=None, *, rest=None, stiffness=1.0, compli
     )
 
 
-def bending_constraints(edge_pairs, x_rest=None, *, rest=None, stiffness=1.0, compliance=None):
+def bending_constraints(
+    edge_pairs, x_rest=None, *, rest=None, stiffness: ArrayLike = 1.0, compliance=None
+):
     """Dihedral bending constraints (eq. 3.20) on ``(M, 4)`` rows ``[a, b, c, d]``
     (:attr:`jaxface.mesh.TriMesh.edge_pairs`); rest angles (rad) measured on ``x_rest`` (mm)."""
     return BendingConstraints.build(
@@ -54,7 +59,9 @@ def bending_constraints(edge_pairs, x_rest=None, *, rest=None, stiffness=1.0, co
     )
 
 
-def area_constraints(triangles, x_rest=None, *, rest=None, stiffness=1.0, compliance=None):
+def area_constraints(
+    triangles, x_rest=None, *, rest=None, stiffness: ArrayLike = 1.0, compliance=None
+):
     """Triangle area constraints (eq. 3.21); rest areas (mm^2) measured on ``x_rest`` (mm)."""
     return AreaConstraints.build(
         triangles, x_rest, rest=rest, stiffness=stiffness, compliance=compliance
@@ -62,7 +69,14 @@ def area_constraints(triangles, x_rest=None, *, rest=None, stiffness=1.0, compli
 
 
 def volume_constraint(
-    triangles, x_rest=None, *, rest=None, origin=None, owner=None, stiffness=1.0, compliance=None
+    triangles,
+    x_rest=None,
+    *,
+    rest=None,
+    origin=None,
+    owner=None,
+    stiffness: ArrayLike = 1.0,
+    compliance=None,
 ):
     """Volume constraints (eq. 3.22) of closed or capped surfaces, one per body (``owner``
     ``(F,)`` gives each triangle's body; default one); ``rest`` mm^3 (default: measured on
@@ -78,20 +92,24 @@ def volume_constraint(
     )
 
 
-def anchor_constraints(indices, targets, *, stiffness=1.0, compliance=None):
+def anchor_constraints(indices, targets, *, stiffness: ArrayLike = 1.0, compliance=None):
     """Position constraints (eq. 3.23) of particles ``(M,)`` to targets ``(M, 3)`` mm; move
     the targets at run time with ``system.set(name, target=...)``."""
     return AnchorConstraints.build(indices, targets, stiffness=stiffness, compliance=compliance)
 
 
-def halfspace_constraints(indices, normals, offsets, *, stiffness=1.0, compliance=None):
+def halfspace_constraints(
+    indices, normals, offsets, *, stiffness: ArrayLike = 1.0, compliance=None
+):
     """Unilateral plane constraints ``n . p >= d`` (mm) for particles ``(M,)``."""
     return HalfSpaceConstraints.build(
         indices, normals, offsets, stiffness=stiffness, compliance=compliance
     )
 
 
-def hull_constraints(indices, normals, offsets, *, clearance=0.0, stiffness=1.0, compliance=None):
+def hull_constraints(
+    indices, normals, offsets, *, clearance=0.0, stiffness: ArrayLike = 1.0, compliance=None
+):
     """Convex-hull collision for particles ``(M,)`` against the planes ``(H, 3)``, ``(H,)`` mm
     of one convex hull (:func:`hull_planes`); run-time planes via ``system.set(name,
     normals=..., offsets=...)`` (:func:`transform_planes` for a hull moving with the jaw)."""

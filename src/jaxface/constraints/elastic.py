@@ -23,6 +23,7 @@ from typing import ClassVar
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike
 
 from .._arrays import to_jax
 from ..errors import MeshError
@@ -133,7 +134,7 @@ class DistanceConstraints(Constraints):
     per_constraint: ClassVar[tuple[str, ...]] = ("stiffness", "compliance", "rest")
 
     @classmethod
-    def build(cls, pairs, x_rest=None, *, rest=None, stiffness=1.0, compliance=None):
+    def build(cls, pairs, x_rest=None, *, rest=None, stiffness: ArrayLike = 1.0, compliance=None):
         """Build from particle pairs.
 
         Args:
@@ -188,7 +189,9 @@ class BendingConstraints(Constraints):
     per_constraint: ClassVar[tuple[str, ...]] = ("stiffness", "compliance", "rest")
 
     @classmethod
-    def build(cls, edge_pairs, x_rest=None, *, rest=None, stiffness=1.0, compliance=None):
+    def build(
+        cls, edge_pairs, x_rest=None, *, rest=None, stiffness: ArrayLike = 1.0, compliance=None
+    ):
         """Build from ``(M, 4)`` edge pairs; rest angles from ``x_rest`` ``(N, 3)`` mm or
         ``rest`` ``(M,)`` rad. ``stiffness`` / ``compliance`` as in
         :meth:`DistanceConstraints.build` (compliance in ``rad^2 / energy``)."""
@@ -273,7 +276,9 @@ class AreaConstraints(Constraints):
     per_constraint: ClassVar[tuple[str, ...]] = ("stiffness", "compliance", "rest")
 
     @classmethod
-    def build(cls, triangles, x_rest=None, *, rest=None, stiffness=1.0, compliance=None):
+    def build(
+        cls, triangles, x_rest=None, *, rest=None, stiffness: ArrayLike = 1.0, compliance=None
+    ):
         """Build from ``(M, 3)`` triangles; rest areas from ``x_rest`` ``(N, 3)`` mm or
         ``rest`` ``(M,)`` mm^2 (compliance in ``mm^4 / energy``)."""
         idx = _check_indices(triangles, 3, "area")

@@ -19,6 +19,7 @@ from typing import ClassVar
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike
 
 from .._arrays import to_jax
 from ..errors import MeshError
@@ -46,7 +47,7 @@ class AnchorConstraints(Constraints):
     per_constraint: ClassVar[tuple[str, ...]] = ("stiffness", "compliance", "target")
 
     @classmethod
-    def build(cls, indices, targets, *, stiffness=1.0, compliance=None):
+    def build(cls, indices, targets, *, stiffness: ArrayLike = 1.0, compliance=None):
         """Build from ``(M,)`` particle ids and ``(M, 3)`` mm targets (compliance in
         ``mm^2 / energy``)."""
         idx = _check_indices(np.asarray(indices).reshape(-1, 1), 1, "anchor")
@@ -109,7 +110,7 @@ class HalfSpaceConstraints(Constraints):
     )
 
     @classmethod
-    def build(cls, indices, normals, offsets, *, stiffness=1.0, compliance=None):
+    def build(cls, indices, normals, offsets, *, stiffness: ArrayLike = 1.0, compliance=None):
         """Build from ``(M,)`` particle ids, ``(M, 3)`` (or ``(3,)``) normals and ``(M,)`` (or
         scalar) mm offsets."""
         idx = _check_indices(np.asarray(indices).reshape(-1, 1), 1, "half-space")
@@ -160,7 +161,16 @@ class HullConstraints(Constraints):
     per_constraint: ClassVar[tuple[str, ...]] = ("stiffness", "compliance", "clearance")
 
     @classmethod
-    def build(cls, indices, normals, offsets, *, clearance=0.0, stiffness=1.0, compliance=None):
+    def build(
+        cls,
+        indices,
+        normals,
+        offsets,
+        *,
+        clearance=0.0,
+        stiffness: ArrayLike = 1.0,
+        compliance=None,
+    ):
         """Build from ``(M,)`` particle ids and the hull planes ``(H, 3)`` / ``(H,)`` mm (see
         :func:`jaxface.pbd.hull_planes`)."""
         idx = _check_indices(np.asarray(indices).reshape(-1, 1), 1, "hull")

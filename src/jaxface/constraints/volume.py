@@ -21,6 +21,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike
 
 from .._arrays import to_jax
 from ..errors import MeshError
@@ -72,7 +73,7 @@ class VolumeConstraint(Constraints):
         rest=None,
         origin=None,
         owner=None,
-        stiffness=1.0,
+        stiffness: ArrayLike = 1.0,
         compliance=None,
     ):
         """Build from ``(F, 3)`` outward-oriented triangles.
