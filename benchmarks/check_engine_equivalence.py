@@ -61,14 +61,14 @@ def _rigs(which) -> Iterator[tuple[str, Rig]]:
             ),
         )
     if "bs901" in which:
-        from jaxface.fit.pipeline import _warp_teeth
+        from jaxface.fit.pipeline import warp_teeth
         from jaxface.fit.register import register_template
         from jaxface.io import load_scan
 
         scan = load_scan(os.path.join(shared, "data", "bosphorus_style", "bs901_N_N_0.bnt"))
         template = generic_head()
         reg = register_template(scan, template=template)
-        upper, lower = _warp_teeth(template, reg)
+        upper, lower = warp_teeth(template, reg)
         yield (
             "bs901",
             pbd_rig(build_rig(reg.mesh, reg.landmarks, upper_teeth=upper, lower_teeth=lower)),

@@ -91,7 +91,7 @@ def load_export_subject(
         )
     if path.suffix.lower() == ".bnt":
         from ..fit.metrics import SurfaceIndex
-        from ..fit.pipeline import _warp_teeth
+        from ..fit.pipeline import warp_teeth
         from ..fit.register import register_template
         from ..io import load_scan
 
@@ -102,8 +102,8 @@ def load_export_subject(
         say("registering the default head to the neutral scan")
         v, tr, _ = scan.mesh_arrays()
         reg = register_template(scan, template=head, scan_index=SurfaceIndex(v, tr))
-        upper, lower = _warp_teeth(head, reg)
-        eyes = _warp_teeth(SimpleNamespace(upper_teeth=head.eyes[0], lower_teeth=head.eyes[1]), reg)
+        upper, lower = warp_teeth(head, reg)
+        eyes = warp_teeth(SimpleNamespace(upper_teeth=head.eyes[0], lower_teeth=head.eyes[1]), reg)
         say("building the rig on the registered neutral")
         rig = build_rig(reg.mesh, reg.landmarks, upper_teeth=upper, lower_teeth=lower)
         parts = [

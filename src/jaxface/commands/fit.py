@@ -132,7 +132,7 @@ def run_fit(
     """
     from ..atomic import ensure_out_dir
     from ..errors import FitError, LandmarkError
-    from ..fit.pipeline import _stem
+    from ..fit.pipeline import scan_stem
 
     if backend not in ("pbd", "ltw"):
         raise FitError(f"--backend {backend!r}: use 'pbd' or 'ltw'.")
@@ -159,7 +159,7 @@ def run_fit(
         load_fit_scan(p, scan_landmarks[i] if scan_landmarks else None, "scan", auto, say)
         for i, p in enumerate(scans)
     ]
-    stems = [_stem(s) for s in loaded]
+    stems = [scan_stem(s) for s in loaded]
     dup = sorted({s for s in stems if stems.count(s) > 1})
     if dup:
         raise FitError(

@@ -69,6 +69,8 @@ __all__ = [
     "ExpressionFit",
     "fit_expressions",
     "scan_fit_inputs",
+    "scan_stem",
+    "warp_teeth",
     "JSON_KEYS",
 ]
 
@@ -174,7 +176,7 @@ class Subject:
         return bound.landmarks(vertices)
 
 
-def _warp_teeth(template, registration, radius_mm: float = 60.0):
+def warp_teeth(template, registration, radius_mm: float = 60.0):
     """The template's teeth carried onto the registered neutral (mm): a thin-plate spline
     through up to 400 template vertices within ``radius_mm`` of the mouth landmarks and their
     registered positions. ``(None, None)`` when the template has no teeth."""
@@ -284,7 +286,7 @@ def prepare_subject(
     timings["register_s"] = time.perf_counter() - t
     t = time.perf_counter()
     say(f"building the {opt.backend} rig on the registered neutral")
-    upper, lower = _warp_teeth(template, reg) if template_landmarks is None else (None, None)
+    upper, lower = warp_teeth(template, reg) if template_landmarks is None else (None, None)
     lm = reg.landmarks
     if opt.backend == "pbd":
         rig = build_rig(reg.mesh, lm, upper_teeth=upper, lower_teeth=lower, **opt.rig_kwargs)
@@ -737,7 +739,7 @@ def _jsonable(x):
     return x
 
 
-def _stem(scan) -> str:
+def scan_stem(scan) -> str:
     p = getattr(scan, "path", None)
     if p is None:
         return "scan"
@@ -824,12 +826,12 @@ def fit_expressions(
     index_of: dict[int, Any] = {}  # alignment -> SurfaceIndex of its scan
 
     def prepare(s):
-        hands = check_mirror(subject.neutral.landmarks, s.landmarks, f"the scan {_stem(s)}")
+        hands = check_mirror(subject.neutral.landmarks, s.landmarks, f"the scan {scan_stem(s)}")
         al = align_scans(s, subject.neutral, fixed_index=subject.neutral_index)
         index = SurfaceIndex(*s.mesh_arrays()[:2])
         check_usable(
             coverage(al.transform.inverse().apply(reg.vertices), reg.face_mask, index),
-            f"the scan {_stem(s)}",
+            f"the scan {scan_stem(s)}",
         )
         hands_of[id(al)] = hands
         index_of[id(al)] = index
@@ -883,7 +885,7 @@ def fit_expressions(
                 f"the last inner solve ended with '{f.status}' (see solver.outer_iterations)"
             )
         return ExpressionFit(
-            stem=_stem(s),
+            stem=scan_stem(s),
             scan=s,
             alignment=al,
             fit=f,
@@ -928,7 +930,7 @@ def fit_expressions(
     for b0 in range(0, len(loaded), bs):
         batch = loaded[b0 : b0 + bs]
         say(
-            f"aligning {_stem(batch[0]) if len(batch) == 1 else f'{len(batch)} scans'} to the neutral"
+            f"aligning {scan_stem(batch[0]) if len(batch) == 1 else f'{len(batch)} scans'} to the neutral"
         )
         # independent per-scan work runs on the outer thread pool (both cores on a 2-core CPU)
         prepared = thread_map(prepare, batch, outer=True)

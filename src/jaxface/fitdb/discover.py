@@ -22,7 +22,7 @@ from pathlib import Path
 from types import SimpleNamespace
 
 from ..errors import DataNotFoundError, ScanFormatError
-from ..fit.pipeline import _stem
+from ..fit.pipeline import scan_stem as pipeline_stem
 from ..io.bosphorus import parse_scan_name
 
 __all__ = ["ScanEntry", "SubjectJob", "discover_database", "read_manifest", "scan_stem"]
@@ -68,7 +68,7 @@ class SubjectJob:
 
 def scan_stem(path: Path) -> str:
     """The stem ``jaxface fit`` gives a scan file's outputs (``x.truth.ply`` -> ``x``)."""
-    return _stem(SimpleNamespace(path=Path(path)))
+    return pipeline_stem(SimpleNamespace(path=Path(path)))
 
 
 def _code_of(stem: str) -> str:
