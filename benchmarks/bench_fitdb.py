@@ -44,8 +44,8 @@ from pathlib import Path
 
 import pyarrow.parquet as pq
 
+from jaxface.fit.options import FitOptions
 from jaxface.fit.pipeline import SubjectOptions
-from jaxface.fit.solve import FitOptions
 from jaxface.fitdb.discover import discover_database
 from jaxface.fitdb.runner import ClusterSpec, run_database
 from jaxface.fitdb.task import FitSettings

@@ -137,8 +137,8 @@ def bench_detection(stems, root: Path) -> dict:
 
 def bench_fit(stems, root: Path) -> dict:
     from jaxface.commands.fit import run_fit
+    from jaxface.fit.options import FitOptions
     from jaxface.fit.pipeline import SubjectOptions
-    from jaxface.fit.solve import FitOptions
 
     opts = FitOptions(n_points=600, outer_iterations=3, max_steps=20)
     sopts = SubjectOptions(levels=2, pitch_knots=6)

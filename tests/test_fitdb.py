@@ -27,8 +27,8 @@ from jaxface.cli import main
 from jaxface.commands import fit, fitdb
 from jaxface.commands.fit import run_fit
 from jaxface.errors import DataNotFoundError, ScanFormatError
+from jaxface.fit.options import FitOptions
 from jaxface.fit.pipeline import SubjectOptions
-from jaxface.fit.solve import FitOptions
 from jaxface.fitdb.discover import discover_database, read_manifest
 from jaxface.fitdb.runner import ClusterSpec, pending_jobs, run_database
 from jaxface.fitdb.table import read_table, summarise

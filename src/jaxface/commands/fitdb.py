@@ -210,8 +210,8 @@ def register(app: typer.Typer) -> None:
             TimeRemainingColumn,
         )
 
+        from ..fit.options import FitOptions
         from ..fit.pipeline import SubjectOptions
-        from ..fit.solve import FitOptions
         from ..fitdb.discover import discover_database
         from ..fitdb.runner import ClusterSpec, run_database
         from ..fitdb.task import FitSettings

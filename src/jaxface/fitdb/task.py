@@ -28,8 +28,8 @@ from distributed import get_worker
 
 from ..commands.fit import fit_and_write, load_fit_scan, prepare_fit_subject
 from ..errors import DataNotFoundError
+from ..fit.options import FitOptions
 from ..fit.pipeline import SubjectOptions
-from ..fit.solve import FitOptions
 from .discover import ScanEntry, SubjectJob
 from .outputs import STAGING_PREFIX, scan_files, write_record
 
@@ -49,7 +49,7 @@ class FitSettings:
     """The ``jaxface fit`` settings every subject is fitted with.
 
     Attributes:
-        options: :class:`~jaxface.fit.solve.FitOptions`; subject_options:
+        options: :class:`~jaxface.fit.options.FitOptions`; subject_options:
             :class:`~jaxface.fit.pipeline.SubjectOptions` (its ``backend`` is used).
         template, template_landmarks: a template skin (mm) and its ``.lm3`` (None: the
             built-in head).
