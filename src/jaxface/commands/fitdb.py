@@ -141,6 +141,16 @@ def register(app: typer.Typer) -> None:
             None, "--template-landmarks", help="Landmarks of --template (.lm3)."
         ),
         backend: str = typer.Option("pbd", "--backend", help="Simulation backend: pbd or ltw."),
+        landmarks: str = typer.Option(
+            "file",
+            "--landmarks",
+            help="As jaxface fit: 'file' (the .lm3 beside each scan, detected when there is "
+            "none) or 'auto' (detect for every scan).",
+        ),
+        ict: Path | None = typer.Option(  # noqa: UP007
+            None, "--ict", help="As jaxface fit: ict_face.npz for the ARKit-52 readout."
+        ),
+        no_arkit: bool = typer.Option(False, "--no-arkit", help="Skip the ARKit readout."),
         pictures: bool = typer.Option(False, "--pictures", help="Also write a picture per scan."),
         points: int = typer.Option(1000, "--points", min=100, help="Scan points per fit."),
         motion_fraction: float = typer.Option(
@@ -217,6 +227,14 @@ def register(app: typer.Typer) -> None:
         from ..fitdb.task import FitSettings
 
         do_resume = out.is_dir() if resume is None else resume
+        if landmarks not in ("file", "auto"):
+            from ..errors import LandmarkError
+
+            raise LandmarkError(f"--landmarks {landmarks!r}: use 'file' or 'auto'.")
+        if ict is not None and not no_arkit and not ict.is_file():
+            from ..errors import DataNotFoundError
+
+            raise DataNotFoundError(f"--ict {ict}: no such file (ICT-FaceKit ict_face.npz).")
         settings = FitSettings(
             options=FitOptions(
                 n_points=points,
@@ -234,6 +252,8 @@ def register(app: typer.Typer) -> None:
             template_landmarks=template_landmarks,
             pictures=pictures,
             batch_size=batch_size,
+            landmarks=landmarks,
+            arkit=None if no_arkit else (ict if ict is not None else "auto"),
         )
         # the workers use the compile cache this process was given (--compile-cache)
         cache = getattr(jax.config, "jax_compilation_cache_dir", None)

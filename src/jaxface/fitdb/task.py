@@ -54,6 +54,9 @@ class FitSettings:
         template, template_landmarks: a template skin (mm) and its ``.lm3`` (None: the
             built-in head).
         pictures: also write ``<stem>.fit.png``; batch_size: as ``jaxface fit --batch-size``.
+        landmarks: ``"file"`` or ``"auto"``, as ``jaxface fit --landmarks``.
+        arkit: the ARKit readout's ICT data (``"auto"``: ``$JAXFACE_ICT``; a path; None: off),
+            as ``jaxface fit --ict`` / ``--no-arkit``.
     """
 
     options: FitOptions = field(default_factory=FitOptions)
@@ -62,6 +65,8 @@ class FitSettings:
     template_landmarks: Path | None = None
     pictures: bool = False
     batch_size: int | None = None
+    landmarks: str = "file"
+    arkit: object = "auto"
 
 
 def error_text(e: BaseException) -> str:
@@ -152,7 +157,14 @@ def fit_subject(job: SubjectJob, settings: FitSettings, out: str | Path) -> list
     loaded: list[tuple[ScanEntry, object]] = []
     for entry in job.scans:
         try:
-            loaded.append((entry, load_fit_scan(entry.path, entry.landmarks, "scan")))
+            loaded.append(
+                (
+                    entry,
+                    load_fit_scan(
+                        entry.path, entry.landmarks, "scan", settings.landmarks == "auto"
+                    ),
+                )
+            )
         except Exception as e:  # noqa: BLE001 - one bad scan is a failed row, not a stop
             fail(entry, e)
     by_stem = {entry.stem: entry for entry, _ in loaded}
@@ -195,12 +207,18 @@ def fit_subject(job: SubjectJob, settings: FitSettings, out: str | Path) -> list
             pictures=settings.pictures,
             batch_size=settings.batch_size,
             on_written=commit,
+            arkit=settings.arkit,
         )
 
     try:
         if loaded:
             try:
-                neutral = load_fit_scan(job.neutral, job.neutral_landmarks, "neutral scan")
+                neutral = load_fit_scan(
+                    job.neutral,
+                    job.neutral_landmarks,
+                    "neutral scan",
+                    settings.landmarks == "auto",
+                )
                 subject = prepare_fit_subject(
                     neutral,
                     template=settings.template,
