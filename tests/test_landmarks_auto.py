@@ -146,7 +146,7 @@ def test_cli_writes_lm3_json_and_picture(tmp_path, shared):
 
 
 def test_fit_loader_detects_forces_and_prefers_an_explicit_file(tmp_path, shared):
-    from jaxface.commands.fit import _load
+    from jaxface.commands.fit import load_fit_scan as _load
 
     src = shared("data", "bosphorus_style", "bs900_UFAU_1_0.bnt")
     file_lm = read_lm3(src.with_suffix(".lm3"))
