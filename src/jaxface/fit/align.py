@@ -38,22 +38,26 @@ forehead by 0.6-9 mm), so no rigid fit can recover ``truth.json``'s motion there
 expression fit's own rigid correction has to finish the job. Where a still region exists
 (AU1, 2, 4, 9, 12, 12L, 20, 26) the error is 0.01-0.2 degrees.
 
-:class:`RigidTransform` and the Kabsch/Umeyama solver are shared with
-:mod:`jaxface.io.preprocess` (one transform type for the whole package).
+The landmark fit, the ICP and the result type are the one alignment stack of
+:mod:`jaxface.alignment` (shared with :func:`jaxface.io.preprocess.align_scan`); this module
+adds the fit's regions (:func:`stable_mask`, :func:`mouth_chin_mask`), the noise floor
+(:func:`estimate_noise`) and the stage schedule above.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Literal
 
 import numpy as np
+from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]
 
+from ..alignment import AlignmentResult, ICPStage, landmark_transform, robust_icp
 from ..errors import FitError, LandmarkError
 from ..landmarks import STABLE_LABELS
-from ..rigid import RigidTransform, procrustes, rotation_from_euler, rotvec_matrix
-from .metrics import DistanceStats, SurfaceIndex, landmark_dict, mesh_arrays
+from ..rigid import RigidTransform, procrustes, rotation_from_euler
+from ..stats import DistanceStats
+from .metrics import SurfaceIndex, landmark_dict, mesh_arrays
 
 __all__ = [
     "RigidTransform",
@@ -190,8 +194,6 @@ def estimate_noise(index: SurfaceIndex, *, n_samples: int = 2000, k: int = 9) ->
     RMS residual of a least-squares plane through each vertex's ``k`` nearest vertices
     (corrected for the 3 fitted parameters). On a smooth face sampled at 1 mm the curvature
     adds about 0.02 mm; the Bosphorus-style bs901 scans (0.1 mm noise) give about 0.09."""
-    from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]
-
     key = (int(n_samples), int(k))
     cache = index.__dict__.setdefault("_noise_estimates", {})
     if key in cache:
@@ -208,202 +210,6 @@ def estimate_noise(index: SurfaceIndex, *, n_samples: int = 2000, k: int = 9) ->
     rms = np.sqrt(np.maximum(ev, 0.0) / max(k - 3, 1))
     cache[key] = float(np.median(rms))
     return cache[key]
-
-
-# --------------------------------------------------------------------------------------
-# robust point-to-plane ICP
-# --------------------------------------------------------------------------------------
-def _robust_weights(r: np.ndarray, c: float, loss: str) -> np.ndarray:
-    u = np.abs(r) / c
-    if loss == "tukey":
-        return np.where(u < 1.0, (1.0 - u * u) ** 2, 0.0)
-    if loss == "huber":
-        return np.where(u <= 1.0, 1.0, 1.0 / np.maximum(u, 1e-300))
-    raise FitError(f"unknown robust loss {loss!r}; use 'tukey' or 'huber'.")
-
-
-@dataclass(frozen=True)
-class ICPStage:
-    """Diagnostics of one robust ICP run (distances in mm).
-
-    Attributes:
-        name: ``"stable"`` or ``"face"``.
-        iterations: iterations run; converged: the update fell below the tolerance.
-        n_points: moving points used; n_matches: accepted matches in the last iteration;
-        n_inliers: matches with a non-zero robust weight in the last iteration.
-        residual: stats of the absolute point-to-plane residuals of the inliers (mm).
-        scale_mm: the robust cut-off in the last iteration (mm).
-    """
-
-    name: str
-    iterations: int
-    converged: bool
-    n_points: int
-    n_matches: int
-    n_inliers: int
-    residual: DistanceStats
-    scale_mm: float
-
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "name": self.name,
-            "iterations": self.iterations,
-            "converged": self.converged,
-            "n_points": self.n_points,
-            "n_matches": self.n_matches,
-            "n_inliers": self.n_inliers,
-            "residual_mm": self.residual.to_dict(),
-            "scale_mm": self.scale_mm,
-        }
-
-
-def robust_icp(
-    moving,
-    fixed: SurfaceIndex,
-    *,
-    init: RigidTransform | None = None,
-    moving_normals=None,
-    similarity: bool = False,
-    loss: Literal["tukey", "huber"] = "tukey",
-    iterations: int = 30,
-    max_distance: float = 5.0,
-    max_normal_angle_deg: float = 60.0,
-    trim: float = 0.1,
-    mad_factor: float = 4.685,
-    min_scale: float = 0.05,
-    anneal: tuple[float, float] | None = None,
-    tol_rad: float = 1e-5,
-    tol_mm: float = 1e-3,
-    exact: bool = False,
-    name: str = "icp",
-) -> tuple[RigidTransform, ICPStage]:
-    """Robust point-to-plane ICP of moving points onto a fixed surface.
-
-    Arguments:
-        moving: ``(K, 3)`` moving points, mm.
-        fixed: the fixed surface as a :class:`SurfaceIndex`.
-        init: starting transform (default identity); its scale is estimated further only
-            when ``similarity``.
-        moving_normals: optional ``(K, 3)`` unit normals of the moving points (rotated with
-            the transform) for the normal-compatibility test.
-        similarity: also estimate a uniform scale.
-        loss: ``"tukey"`` (biweight, redescending) or ``"huber"``.
-        iterations: maximum number of iterations (static).
-        max_distance: matches farther than this (mm) are rejected.
-        max_normal_angle_deg: matches whose normals differ more are rejected.
-        trim: fraction of the largest residuals dropped before weighting.
-        mad_factor: robust cut-off ``= mad_factor * 1.4826 * MAD`` (at least ``min_scale``).
-        anneal: optional ``(start, end)`` mm: cut-off annealed geometrically over the first
-            half of the iterations instead of the MAD rule.
-        tol_rad, tol_mm: convergence tolerances on the update (radians, mm).
-        exact: exact closest points in every iteration (default: the fast local search of
-            :meth:`SurfaceIndex.query`, exact near the surface on well-shaped meshes).
-
-    Returns:
-        ``(transform, ICPStage)``; ``transform`` maps moving points onto ``fixed``.
-
-    Raises:
-        FitError: fewer than 7 usable matches (the scans are not roughly aligned).
-    """
-    p0 = np.asarray(moving, dtype=np.float64)
-    n0 = None if moving_normals is None else np.asarray(moving_normals, dtype=np.float64)
-    T = init or RigidTransform()
-    cos_max = np.cos(np.radians(max_normal_angle_deg))
-    converged = False
-    it = 0
-    last = (0, 0, DistanceStats.from_distances([]), float("nan"))
-    half = max(iterations // 2, 1)
-    for it in range(1, iterations + 1):
-        p = T.apply(p0)
-        cp = fixed.query(p, max_distance=max_distance, exact=exact)
-        ok = (cp.distances <= max_distance) & ~cp.on_boundary
-        if n0 is not None:
-            ok &= np.einsum("ij,ij->i", n0 @ T.rotation.T, cp.normals) >= cos_max
-        idx = np.flatnonzero(ok)
-        if idx.size < 7:
-            raise FitError(
-                f"ICP ({name}) found only {idx.size} matches within {max_distance} mm on the fixed "
-                "scan; the scans are not roughly aligned. Check the landmarks of both scans."
-            )
-        q, nq, pp = cp.points[idx], cp.normals[idx], p[idx]
-        r = np.einsum("ij,ij->i", pp - q, nq)
-        if trim > 0:
-            keep = np.abs(r) <= np.quantile(np.abs(r), 1.0 - trim)
-            q, nq, pp, r = q[keep], nq[keep], pp[keep], r[keep]
-        if anneal is None:
-            mad = float(np.median(np.abs(r - np.median(r))))
-            c = max(mad_factor * 1.4826 * mad, min_scale)
-        else:
-            f = min((it - 1) / half, 1.0)
-            c = anneal[0] * (anneal[1] / anneal[0]) ** f
-        w = _robust_weights(r, c, loss)
-        n_in = int((w > 0).sum())
-        if n_in < 7:
-            raise FitError(f"ICP ({name}): fewer than 7 inlier matches after robust weighting.")
-        # r(x) ~ r + J x, x = (omega, t[, ds]) about the current transform's output
-        cols = [np.cross(pp, nq), nq]
-        centre = pp.mean(axis=0)
-        if similarity:
-            cols.append(np.einsum("ij,ij->i", pp - centre, nq)[:, None])
-        J = np.concatenate(cols, axis=1)
-        A = (J * w[:, None]).T @ J
-        b = -(J * w[:, None]).T @ r
-        A += 1e-12 * np.trace(A) * np.eye(len(b))
-        x = np.linalg.solve(A, b)
-        if similarity:
-            s = float(np.exp(x[6]))
-            # scale about the centroid of the matched points, then rotate/translate
-            S = RigidTransform(np.eye(3), (1.0 - s) * centre, s)
-            T = S.compose(T)
-        step = RigidTransform(rotvec_matrix(x[:3]), x[3:6])
-        T = step.compose(T)
-        last = (int(idx.size), n_in, DistanceStats.from_distances(r[w > 0]), c)
-        annealing = anneal is not None and it <= half
-        if not annealing and np.linalg.norm(x[:3]) < tol_rad and np.linalg.norm(x[3:6]) < tol_mm:
-            converged = True
-            break
-    return T, ICPStage(name, it, converged, len(p0), last[0], last[1], last[2], float(last[3]))
-
-
-# --------------------------------------------------------------------------------------
-# the alignment
-# --------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class AlignmentResult:
-    """Result of :func:`align_scans`.
-
-    Attributes:
-        transform: maps the moving scan into the fixed frame (``fixed ~ T(moving)``), mm.
-        landmark_transform: the landmark-only (step 1) estimate.
-        labels: the stable landmark labels used in step 1.
-        landmark_rms: RMS distance (mm) of those landmarks after ``transform``.
-        stages: diagnostics of the ICP stages run (empty when ICP was off or impossible).
-        residual: stats (mm) of the inlier point-to-plane residuals of the last stage.
-        converged: every ICP stage converged.
-        notes: remarks (skipped stages, missing landmarks).
-    """
-
-    transform: RigidTransform
-    landmark_transform: RigidTransform
-    labels: tuple[str, ...]
-    landmark_rms: float
-    stages: tuple[ICPStage, ...] = ()
-    residual: DistanceStats = field(default_factory=lambda: DistanceStats.from_distances([]))
-    converged: bool = True
-    notes: tuple[str, ...] = ()
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-ready dict (mm, degrees)."""
-        return {
-            "transform": self.transform.as_dict(),
-            "landmark_transform": self.landmark_transform.as_dict(),
-            "labels": list(self.labels),
-            "landmark_rms_mm": self.landmark_rms,
-            "stages": [s.to_dict() for s in self.stages],
-            "residual_mm": self.residual.to_dict(),
-            "converged": self.converged,
-            "notes": list(self.notes),
-        }
 
 
 def _mesh_or_points(x):
@@ -483,17 +289,9 @@ def align_scans(
     flm = landmark_dict(
         fixed_landmarks if fixed_landmarks is not None else getattr(fixed, "landmarks", None)
     )
-    used = [n for n in labels if n in mlm and n in flm]
-    if len(used) < 3:
-        raise LandmarkError(
-            f"rigid alignment needs at least 3 stable landmarks present in both scans; found "
-            f"{len(used)} ({', '.join(used) or 'none'}); missing: "
-            f"{', '.join(n for n in labels if n not in used)}.",
-            missing=tuple(n for n in labels if n not in used),
-        )
+    T0, used = landmark_transform(mlm, flm, labels, scale=similarity)
     src = np.stack([mlm[n] for n in used])
     dst = np.stack([flm[n] for n in used])
-    T0 = umeyama(src, dst, scale=similarity)
     notes: list[str] = []
     missing = [n for n in labels if n not in used]
     if missing:
@@ -590,7 +388,7 @@ def align_scans(
     return AlignmentResult(
         transform=T,
         landmark_transform=T0,
-        labels=tuple(used),
+        labels=used,
         landmark_rms=lrms,
         stages=tuple(stages),
         residual=residual,

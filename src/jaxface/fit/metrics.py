@@ -6,7 +6,7 @@ Everything here is NumPy/SciPy (build-time and evaluation code, never on the jit
 * :class:`SurfaceIndex`, :func:`point_to_surface`, :func:`mesh_arrays`: exact closest points
   on a triangle mesh (:mod:`jaxface.closest`, re-exported here).
 * :class:`DistanceStats`: mean, median, RMS, 95th percentile and maximum of a set of
-  distances (mm).
+  distances (mm) (:mod:`jaxface.stats`, re-exported here).
 * :class:`FacePlane`: the landmark-derived plane that splits the face into an upper and a
   lower part. It passes through the **nose tip** and its normal is the face's "up" direction,
   taken from the midpoint of the mouth corners to the midpoint of the inner eye corners and
@@ -21,8 +21,6 @@ Everything here is NumPy/SciPy (build-time and evaluation code, never on the jit
 
 from __future__ import annotations
 
-import dataclasses
-import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -38,6 +36,7 @@ from ..closest import (
 )
 from ..errors import FitError, LandmarkError
 from ..landmarks import canonical_label
+from ..stats import DistanceStats
 
 __all__ = [
     "SurfaceIndex",
@@ -78,53 +77,6 @@ def landmark_dict(landmarks) -> dict[str, np.ndarray]:
         key = canonical_label(name)
         out[key or str(name)] = np.asarray(pos, dtype=np.float64).reshape(3)
     return out
-
-
-# --------------------------------------------------------------------------------------
-# statistics
-# --------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class DistanceStats:
-    """Summary of a set of distances, all in mm (``n`` is a count).
-
-    ``mean``, ``median``, ``rms``, ``p95`` (95th percentile, linear interpolation) and
-    ``max``; NaN for an empty set (``n == 0``), which :meth:`to_dict` writes as ``None``.
-    """
-
-    n: int
-    mean: float
-    median: float
-    rms: float
-    p95: float
-    max: float
-
-    @classmethod
-    def from_distances(cls, distances) -> DistanceStats:
-        d = np.abs(np.asarray(distances, dtype=np.float64).ravel())
-        if d.size and not np.all(np.isfinite(d)):
-            raise FitError(
-                f"{int((~np.isfinite(d)).sum())} of {d.size} distances are NaN/inf; metrics "
-                "need finite distances (check the meshes for NaN vertices)."
-            )
-        if d.size == 0:
-            nan = float("nan")
-            return cls(0, nan, nan, nan, nan, nan)
-        return cls(
-            n=int(d.size),
-            mean=float(d.mean()),
-            median=float(np.median(d)),
-            rms=float(np.sqrt(np.mean(d * d))),
-            p95=float(np.percentile(d, 95)),
-            max=float(d.max()),
-        )
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-ready dict (mm); NaN becomes ``None``."""
-        out: dict[str, Any] = {}
-        for f in dataclasses.fields(self):
-            x = getattr(self, f.name)
-            out[f.name] = None if isinstance(x, float) and math.isnan(x) else x
-        return out
 
 
 # --------------------------------------------------------------------------------------

@@ -22,20 +22,25 @@ Choices (facial-anatomy notes; Erdoğdu 2010 notes sec. 7.1):
   mask are available.
 * Matches on the border of the reference scan (holes, silhouette) and farther than
   ``max_distance`` are rejected, so holes and depth noise do not bias the transform.
+
+The landmark fit, the ICP and :class:`AlignmentResult` are the one alignment stack of
+:mod:`jaxface.alignment` (shared with :func:`jaxface.fit.align.align_scans`); here the fixed
+scan is a :class:`~jaxface.alignment.PointCloud` of its samples and point normals.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
-from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]
 
+from ..alignment import AlignmentResult, ICPStage, PointCloud, landmark_transform, robust_icp
 from ..errors import FitError, LandmarkError
 from ..landmarks import STABLE_LABELS, Landmarks
-from ..rigid import RigidTransform, procrustes, rotvec_matrix
+from ..rigid import RigidTransform, procrustes
+from ..stats import DistanceStats
 from .bosphorus import Scan, _canon
 
 __all__ = [
@@ -67,27 +72,18 @@ def align_landmarks(
     min_count: int = 3,
 ) -> tuple[RigidTransform, tuple[str, ...]]:
     """Rigid/similarity transform taking ``moving`` landmarks onto ``fixed`` ones (mm),
-    using the labels in ``labels`` present in both (matched by label).
+    using the labels in ``labels`` present in both (matched by their canonical spelling;
+    :func:`jaxface.alignment.landmark_transform`).
 
     Returns:
-        ``(transform, labels used)``.
+        ``(transform, canonical labels used)``.
 
     Raises:
         LandmarkError: fewer than ``min_count`` common labels (lists the missing ones).
     """
-    mv = {_canon(n): n for n in moving.names}
-    fx = {_canon(n): n for n in fixed.names}
-    used = [l for l in labels if _canon(l) in mv and _canon(l) in fx]
-    if len(used) < min_count:
-        missing = [l for l in labels if _canon(l) not in mv or _canon(l) not in fx]
-        raise LandmarkError(
-            f"rigid alignment needs at least {min_count} stable landmarks present in both scans; "
-            f"found {len(used)} ({', '.join(used) or 'none'}); missing: {', '.join(missing)}.",
-            missing=missing,
-        )
-    a = np.stack([np.asarray(moving[mv[_canon(l)]], dtype=np.float64) for l in used])
-    b = np.stack([np.asarray(fixed[fx[_canon(l)]], dtype=np.float64) for l in used])
-    return procrustes(a, b, scale=scale), tuple(used)
+    mv = {_canon(n): np.asarray(moving[n], dtype=np.float64) for n in moving.names}
+    fx = {_canon(n): np.asarray(fixed[n], dtype=np.float64) for n in fixed.names}
+    return landmark_transform(mv, fx, [_canon(n) for n in labels], scale=scale, min_count=min_count)
 
 
 def stable_region(
@@ -157,15 +153,9 @@ def boundary_points(scan: Scan) -> np.ndarray:
     return out
 
 
-@dataclass(frozen=True)
-class ICPInfo:
-    """Diagnostics of :func:`icp` (distances in mm)."""
-
-    iterations: int
-    converged: bool
-    rms: float  # weighted RMS point-to-plane residual at the end
-    median: float  # median absolute point-to-plane residual of the inliers
-    n_inliers: int
+#: Diagnostics of :func:`icp` (the alignment stack's :class:`~jaxface.alignment.ICPStage`:
+#: ``iterations``, ``converged``, ``rms`` (weighted), ``median``, ``n_inliers``, mm).
+ICPInfo = ICPStage
 
 
 def icp(
@@ -179,97 +169,43 @@ def icp(
     max_distance: float = 5.0,
     tol: float = 1e-5,
     anneal: tuple[float, float] | None = None,
-) -> tuple[RigidTransform, ICPInfo]:
+    name: str = "icp",
+) -> tuple[RigidTransform, ICPStage]:
     """Robust point-to-plane ICP: the rigid transform taking ``moving`` onto the surface
-    sampled by ``fixed``.
+    sampled by ``fixed`` (:func:`jaxface.alignment.robust_icp` on a
+    :class:`~jaxface.alignment.PointCloud`).
 
     Each iteration matches every moving point to its nearest fixed point, drops matches
     farther than ``max_distance`` mm or landing on ``fixed_reject`` points (holes,
     silhouette), weights the point-to-plane residuals with Tukey's biweight (scale 4.685 x
-    1.4826 x MAD, at least 0.05 mm) and solves the linearised 6-DOF update.
+    1.4826 x MAD, at least 0.05 mm, or annealed over ``anneal`` mm) and solves the
+    linearised 6-DOF update; no trimming, no normal test.
 
     Args:
         moving: (M, 3) mm.
         fixed: (K, 3) mm; fixed_normals: (K, 3) unit.
         init: starting transform (default identity).
         fixed_reject: (K,) bool, fixed points that may not be matched.
+        tol: convergence tolerance on the rotation update, radians (translation: 100 x, mm).
 
     Raises:
         FitError: fewer than 6 usable matches (the transform is undetermined).
     """
-    mov = np.asarray(moving, dtype=np.float64)
-    fx = np.asarray(fixed, dtype=np.float64)
-    fn = np.asarray(fixed_normals, dtype=np.float64)
-    T = init or RigidTransform()
-    tree = cKDTree(fx)
-    rej = np.zeros(len(fx), dtype=bool) if fixed_reject is None else np.asarray(fixed_reject, bool)
-    converged, it, rms, med, n_in = False, 0, np.inf, np.inf, 0
-    for it in range(1, iterations + 1):
-        p = T.apply(mov)
-        d, j = tree.query(p)
-        ok = (d < max_distance) & ~rej[j]
-        if ok.sum() < 6:
-            raise FitError(
-                f"ICP found only {int(ok.sum())} matches closer than {max_distance} mm; "
-                f"the scans are not roughly aligned (check the landmarks)."
-            )
-        p, q, n = p[ok], fx[j[ok]], fn[j[ok]]
-        r = np.einsum("ij,ij->i", p - q, n)
-        mad = np.median(np.abs(r - np.median(r)))
-        if anneal is None:
-            c = max(4.685 * 1.4826 * mad, 0.05)
-        else:
-            f = min((it - 1) / max(iterations // 2, 1), 1.0)
-            c = anneal[0] * (anneal[1] / anneal[0]) ** f
-        u = r / c
-        w = np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0)
-        n_in = int((w > 0).sum())
-        if n_in < 6:
-            raise FitError("ICP: fewer than 6 inlier matches after robust weighting")
-        J = np.concatenate([np.cross(p, n), n], axis=1)  # d r / d (omega, t)
-        A = (J * w[:, None]).T @ J
-        b = -(J * w[:, None]).T @ r
-        x = np.linalg.solve(A + 1e-9 * np.trace(A) / 6 * np.eye(6), b)
-        step = RigidTransform(rotvec_matrix(x[:3]), x[3:])
-        # rotate about the origin of the current frame: p' = R p + t
-        T = step.compose(T)
-        rms = float(np.sqrt(np.sum(w * r * r) / np.sum(w)))
-        med = float(np.median(np.abs(r[w > 0])))
-        annealing = anneal is not None and it <= iterations // 2
-        if not annealing and np.linalg.norm(x[:3]) < tol and np.linalg.norm(x[3:]) < tol * 100:
-            converged = True
-            break
-    return T, ICPInfo(it, converged, rms, med, n_in)
-
-
-@dataclass(frozen=True)
-class AlignmentResult:
-    """Result of :func:`align_scan`.
-
-    Attributes:
-        transform: maps the moving scan's frame into the reference frame (mm).
-        scan: the moving scan with points and landmarks transformed into the reference frame.
-        landmark_labels: stable labels used for the initial fit.
-        landmark_rms: RMS distance (mm) of those landmarks after the final transform.
-        icp: :class:`ICPInfo` or ``None`` when ICP was skipped.
-        notes: readable remarks (pose/occlusion classes, missing labels, ICP status).
-    """
-
-    transform: RigidTransform
-    scan: Scan
-    landmark_labels: tuple[str, ...]
-    landmark_rms: float
-    icp: ICPInfo | None
-    notes: tuple[str, ...] = ()
-
-    def as_dict(self) -> dict:
-        return {
-            "transform": self.transform.as_dict(),
-            "landmark_labels": list(self.landmark_labels),
-            "landmark_rms_mm": self.landmark_rms,
-            "icp": None if self.icp is None else self.icp.__dict__.copy(),
-            "notes": list(self.notes),
-        }
+    return robust_icp(
+        moving,
+        PointCloud(fixed, fixed_normals, fixed_reject),
+        init=init,
+        loss="tukey",
+        iterations=iterations,
+        max_distance=max_distance,
+        trim=0.0,
+        anneal=anneal,
+        tol_rad=tol,
+        tol_mm=tol * 100,
+        ridge=1e-9 / 6,
+        min_matches=6,
+        name=name,
+    )
 
 
 #: Tukey cut-off schedule (mm) of the whole-face ICP stage of ``region="auto"``.
@@ -305,13 +241,62 @@ def align_points(
     Returns:
         ``(transform moving -> fixed, stable labels used, ICPInfo or None, notes)``.
     """
+    res = _align_points(
+        moving_points,
+        moving_landmarks,
+        fixed_points,
+        fixed_normals,
+        fixed_landmarks,
+        fixed_reject=fixed_reject,
+        use_icp=use_icp,
+        scale=scale,
+        region=region,
+        icp_iterations=icp_iterations,
+        max_distance=max_distance,
+        subsample=subsample,
+    )
+    return res.transform, res.labels, res.icp, list(res.notes)
+
+
+def _align_points(
+    moving_points,
+    moving_landmarks,
+    fixed_points,
+    fixed_normals,
+    fixed_landmarks,
+    *,
+    fixed_reject,
+    use_icp,
+    scale,
+    region,
+    icp_iterations,
+    max_distance,
+    subsample,
+) -> AlignmentResult:
+    """:func:`align_points` as an :class:`AlignmentResult` (``landmark_rms`` left NaN: the
+    callers measure it on their own landmarks)."""
     notes: list[str] = []
     T, used = align_landmarks(moving_landmarks, fixed_landmarks, scale=scale)
     missing = [l for l in STABLE_ALIGNMENT_LABELS if l not in used]
     if missing:
         notes.append(f"stable landmarks not used (absent): {', '.join(missing)}")
+    T0 = T
+
+    def result(T, info=None):
+        stages = () if info is None else (info,)
+        return AlignmentResult(
+            transform=T,
+            landmark_transform=T0,
+            labels=used,
+            landmark_rms=float("nan"),
+            stages=stages,
+            residual=info.residual if info is not None else DistanceStats.from_distances([]),
+            converged=all(s.converged for s in stages),
+            notes=tuple(notes),
+        )
+
     if not use_icp:
-        return T, used, None, notes
+        return result(T)
     if fixed_normals is None:
         raise FitError("align_points: ICP needs fixed_normals; give them or use_icp=False.")
     pts = np.asarray(moving_points, dtype=np.float64)
@@ -327,7 +312,7 @@ def align_points(
     mov = pts[mask][::step]
     if len(mov) < 50:
         notes.append(f"ICP skipped: only {len(mov)} points in the ICP region")
-        return T, used, None, notes
+        return result(T)
     info = None
     try:
         pre = RigidTransform(np.eye(3), np.zeros(3), T.scale)  # ICP stays rigid
@@ -338,12 +323,28 @@ def align_points(
         if isinstance(region, str) and region == "auto":
             st = stable_region(pts, moving_landmarks)[mask][::step]
             if st.sum() >= 50:
-                rigid0, _ = icp(pre.apply(mov[st]), fixed_points, fixed_normals, init=rigid0, **kw)
+                rigid0, _ = icp(
+                    pre.apply(mov[st]),
+                    fixed_points,
+                    fixed_normals,
+                    init=rigid0,
+                    name="stable",
+                    **kw,
+                )
             R_icp, info = icp(
-                pre.apply(mov), fixed_points, fixed_normals, init=rigid0, anneal=ANNEAL, **kw
+                pre.apply(mov),
+                fixed_points,
+                fixed_normals,
+                init=rigid0,
+                anneal=ANNEAL,
+                name="all",
+                **kw,
             )
         else:
-            R_icp, info = icp(pre.apply(mov), fixed_points, fixed_normals, init=rigid0, **kw)
+            name = region if isinstance(region, str) else "mask"
+            R_icp, info = icp(
+                pre.apply(mov), fixed_points, fixed_normals, init=rigid0, name=name, **kw
+            )
         T = R_icp.compose(pre)
         if not info.converged:
             notes.append(
@@ -351,7 +352,8 @@ def align_points(
             )
     except FitError as e:
         notes.append(f"ICP failed, landmark alignment kept: {e}")
-    return T, used, info, notes
+        info = None
+    return result(T, info)
 
 
 def align_scan(
@@ -394,7 +396,7 @@ def align_scan(
             notes.append(f"{s.info.stem}: {s.info.describe()}")
     fn = point_normals(reference) if use_icp else None
     rej = boundary_points(reference) if use_icp else None
-    T, used, info, more = align_points(
+    res = _align_points(
         scan.points,
         scan.landmarks,
         reference.points,
@@ -408,10 +410,16 @@ def align_scan(
         max_distance=max_distance,
         subsample=subsample,
     )
-    notes += more
+    T = res.transform
     moved_lm = scan.landmarks.transformed(T.rotation * T.scale, T.translation)
-    a = np.stack([np.asarray(moved_lm[l]) for l in used])
-    b = np.stack([np.asarray(reference.landmarks[l]) for l in used])
-    lrms = float(np.sqrt(np.mean(np.sum((a - b) ** 2, axis=1))))
+    a = np.stack([np.asarray(moved_lm[l]) for l in res.labels])
+    b = np.stack([np.asarray(reference.landmarks[l]) for l in res.labels])
+    sq = np.sum((a - b) ** 2, axis=1)
     moved = replace(scan, points=T.apply(scan.points), landmarks=moved_lm)
-    return AlignmentResult(T, moved, used, lrms, info, tuple(notes))
+    return replace(
+        res,
+        landmark_rms=float(np.sqrt(np.mean(sq))),
+        residual=res.residual if res.stages else DistanceStats.from_distances(np.sqrt(sq)),
+        notes=tuple(notes) + res.notes,
+        scan=moved,
+    )
