@@ -70,6 +70,20 @@ class RigError(JaxfaceError, ValueError):
     (unknown muscle names, activations of the wrong shape, bad muscle-map file)."""
 
 
+class RigOptionError(RigError):
+    """A rig option or config object that the chosen backend does not take (for example
+    ``muscle_iterations`` with ``backend="ltw"``), refused instead of silently dropped.
+
+    Attributes:
+        backend: the backend asked for; options: the names of the options refused.
+    """
+
+    def __init__(self, message: str, *, backend: str = "", options=()):
+        super().__init__(message)
+        self.backend = backend
+        self.options = tuple(options)
+
+
 class FitError(JaxfaceError, RuntimeError):
     """An inverse fit could not be set up or did not produce a usable result."""
 

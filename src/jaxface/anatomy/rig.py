@@ -22,6 +22,7 @@ Units: mm, degrees (jaw angles); +y up, +z forward, subject's left +x.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any, cast
 
 import equinox as eqx
@@ -34,15 +35,22 @@ from ..errors import RigError
 from ..mesh import TriMesh
 from ..validate import checked_build, checked_controls
 from .frame import face_frame
+from .interface import RigConfig, configure, register_backend, rig_backend
 from .jaw import JawModel, JawPose
 from .muscle_map import MuscleSpec, load_muscle_map, place_muscles, placement_registry
 from .muscles import (
-    SHELL_STIFFNESS,
     MuscleSystem,
     build_muscle_system,
     moved_skull_points,
     muscle_sweep,
     solve_muscles,
+)
+from .rig_config import (
+    FAT_VOLUME,
+    FOOTPRINT_CLUSTER_MM,
+    FOOTPRINT_MM,
+    JAW_FOLLOW_MM,
+    PBDRigConfig,
 )
 from .skin import (
     SkinSystem,
@@ -55,62 +63,12 @@ from .skin import (
 )
 from .skull import Skull, estimate_skull
 
-JAW_FOLLOW_MM = (30.0, 100.0)
-"""Default ``(full, reach)`` distances from the chin of the jaw's pull on the soft tissue,
-reference mm (:func:`jaw_follow_weights`)."""
-
-#: Default sigma of the tissue footprint, reference mm, ``(lower, upper)``: 10 mm over the
-#: whole face (the pair blends from the eyes up to the brows,
-#: :func:`~jaxface.anatomy.skin.footprint_sigma`). A single 5 mm let the smile fold the skin
-#: over itself below the mouth corners: under the left corner the lower lip ring, pulled up
-#: 15 mm by the modiolus, was followed 2-5 mm lower by skin rising 10 mm and, 2 mm lower
-#: again, by skin rising 4 mm, and 30 anchor-target triangles (40 skin triangles) of AU12 on
-#: the default head inverted; 6 mm still inverted 10, 7 mm and more none. The wider footprint also fits the Bosphorus-style scans better
-#: (``benchmarks/bench_fit.py``, mean over the 20 expression scans): 0.821 mm with 5 mm,
-#: 0.787 with 7, 0.773 with 8, 0.752 with 10 (16 scans within 1 mm, was 15) and 0.757 with
-#: 14 mm, where the smiles got worse again (the last four with the eyelids' corner taper,
-#: :data:`~jaxface.anatomy.skin.LID_CORNER_TAPER`). The forehead had 5 mm until the brow
-#: depressor (``depressor_supercilii`` of the muscle map) came: a lowered brow drags the
-#: forehead skin down with it (the ICT brow lowerer slides it 2-3 mm 20 mm above the brow),
-#: and with 5 mm the skin bound to the still frontalis stayed put. 10 mm on the forehead too
-#: took the brow-lowering scans from 0.395 / 0.440 mm to 0.310 / 0.392 (bs900 / bs901) and the
-#: brow raisers from 0.331-0.385 to 0.313-0.348 mm; 14 mm gave 0.297 / 0.398 (measured with
-#: the fitting code of ``benchmarks/bench_fit.py``, float64). The cost: the exact footprint matrix of the
-#: ICT face has 3x the entries (2.9 M) and made a synthesis there 1.45x as long (65 against
-#: 45 ms), which :data:`FOOTPRINT_CLUSTER_MM` mostly wins back; the lower-face muscles are
-#: less distinguishable in the synthetic round trip (on the ICT face the zygomaticus major,
-#: levator anguli oris and risorius have VIFs of 19-38).
-FOOTPRINT_MM = (10.0, 10.0)
-
-#: Default width of the vertex clusters the wide rows of the tissue footprint draw on,
-#: reference mm (:func:`~jaxface.anatomy.skin.footprint_operator`): rows at least 1.5 cluster
-#: widths wide (the 10 mm lower face) weight clusters instead of single vertices, with the
-#: mean of their weights of the cluster's vertices. On the ICT face the operator has 1.16 M
-#: entries instead of 2.92 M, and a synthesis takes 49.5 against 70.2 ms with the exact
-#: footprint, timed side by side (``bench_synth.py --footprint-clusters 0``), 0.23 mm from it
-#: at most for that benchmark's AU6 + AU12 + AU26 (0.13 mm 99th percentile). Anger, disgust,
-#: fear, sadness, surprise, AU1, AU4, AU9, AU15 and AU20 stay within 0.09 mm of it; AU12
-#: and happiness within 0.3 mm but for one vertex under the lower lip, 1.5 mm off (it lags
-#: its neighbours by 1-2 mm with either footprint). 6 mm clusters were only 3 % faster
-#: again. The mean fit error on the Bosphorus-style scans stayed 0.752 mm.
-#: 0 = the exact footprint.
-FOOTPRINT_CLUSTER_MM = 5.0
-
-#: Default gain of the fat layer's volume preservation, ``(lower, upper)``
-#: (:func:`~jaxface.anatomy.skin.fat_thickness`): half in the lower face, blended to none
-#: from the eyes up to the brows. On the Bosphorus-style scans (``benchmarks/bench_fit.py``,
-#: float64, measured before the muscle quads were split as mirror images) it lowered the mean
-#: error from 0.889 to 0.854 mm (jaw opening LFAU_26 1.11 -> 0.91 mm on both subjects;
-#: E_SURPRISE 0.89 -> 0.83); gains 0.35 and 0.7 gave 0.858 mm each; gain 0.5 over the whole
-#: face 0.861 mm (the brow raisers got 0.02-0.07 mm worse with the forehead thickening under
-#: the frontalis). 0 turns it off.
-FAT_VOLUME = (0.5, 0.0)
-
 __all__ = [
     "FAT_VOLUME",
     "FOOTPRINT_CLUSTER_MM",
     "FOOTPRINT_MM",
     "JAW_FOLLOW_MM",
+    "PBDRigConfig",
     "Rig",
     "RigInfo",
     "SynthState",
@@ -209,6 +167,11 @@ class Rig(eqx.Module):
             a[self.index(k)] = float(v)
         return jnp.asarray(a)
 
+    def synthesize(self, activations, jaw: JawPose | None = None, cheek_puff=0.0) -> jax.Array:
+        """:func:`synthesize` of this rig: ``(V, 3)`` skin, mm (the
+        :class:`~jaxface.anatomy.interface.FaceRig` method)."""
+        return synthesize(self, activations, jaw, cheek_puff)
+
     def with_iterations(
         self,
         muscles: int | None = None,
@@ -255,8 +218,6 @@ class Rig(eqx.Module):
 
 
 def _replace_static(module, **kw):
-    import dataclasses
-
     return dataclasses.replace(module, **kw)
 
 
@@ -278,22 +239,23 @@ def build_rig(
     muscle_map=None,
     backend: str = "pbd",
     *,
+    config: RigConfig | None = None,
     upper_teeth: TriMesh | None = None,
     lower_teeth: TriMesh | None = None,
-    muscle_iterations: int = 32,
-    skin_iterations: int = 8,
-    footprint_mm: float | tuple = FOOTPRINT_MM,
-    footprint_cluster_mm: float = FOOTPRINT_CLUSTER_MM,
-    influence_radius: float = 0.15,
-    eyelid_threshold: float = 0.04,
-    bending: bool = False,
-    jaw_follow_mm: tuple[float, float] = JAW_FOLLOW_MM,
-    jaw_membrane: bool = False,
-    skin_chebyshev_rho: float = 0.0,
-    muscle_shell_stiffness: float = SHELL_STIFFNESS,
-    fat_volume: float | tuple = FAT_VOLUME,
+    muscle_iterations: int | None = None,
+    skin_iterations: int | None = None,
+    footprint_mm: float | tuple | None = None,
+    footprint_cluster_mm: float | None = None,
+    influence_radius: float | None = None,
+    eyelid_threshold: float | None = None,
+    bending: bool | None = None,
+    jaw_follow_mm: tuple[float, float] | None = None,
+    jaw_membrane: bool | None = None,
+    skin_chebyshev_rho: float | None = None,
+    muscle_shell_stiffness: float | None = None,
+    fat_volume: float | tuple | None = None,
 ):
-    """Build the rig of a face.
+    """Build the rig of a face with either backend.
 
     Args:
         skin: the skin :class:`TriMesh` (mm, face looking +z), or a
@@ -302,67 +264,54 @@ def build_rig(
         skull: a :class:`Skull` (user-supplied or fitted); estimated when None.
         muscle_map: path of a muscle-map JSON, a list of :class:`MuscleSpec`, or None for the
             packaged default map.
-        backend: "pbd" (this module) or "ltw" (the Lee-Terzopoulos-Waters backend).
-        upper_teeth, lower_teeth: teeth meshes (mm) for the lip collisions (default: the
-            skull's).
-        muscle_iterations, skin_iterations: static sweeps of the quasi-static solves.
-        footprint_mm: sigma of the tissue footprint (reference mm), or a ``(lower, upper)``
-            pair: ``lower`` up to the inner eye corners, ``upper`` from the inner eyebrows up,
-            blended in between (:func:`~jaxface.anatomy.skin.footprint_sigma`; see
-            :data:`FOOTPRINT_MM` for why the default is ``(10, 10)``).
-        footprint_cluster_mm: width of the vertex clusters the footprint's wide rows draw on
-            (reference mm, :data:`FOOTPRINT_CLUSTER_MM`); 0 = the exact footprint.
-        influence_radius: influence-map falloff in normalised geodesic distance.
-        eyelid_threshold: normalised geodesic distance of the eyelid region (thesis 0.04).
-        bending: include the skin's dihedral bending constraints (thesis 0.95; off by default:
-            with the tissue footprint they change the result by < 0.1 mm at 3x the cost).
-        jaw_follow_mm: ``(full, reach)``, reference mm: the tissue attached to the skull
-            follows the jaw fully within ``full`` of the chin, less further away, not at
-            all beyond ``reach`` (:func:`jaw_follow_weights`); ``(0, 0)`` = the thesis's
-            rigid split (mandible fully, cranium not at all).
-        jaw_membrane: the skin under the jaw that is bound to the cranium (no bone moves it)
-            takes the harmonic interpolation of the skin around it instead of following its
-            bound points (:func:`~jaxface.anatomy.skin.membrane_interpolation`). It removes
-            the crease folds left under the chin at wide jaw openings (78 inverted
-            triangles at 18 degrees on the default head, none with it) for animation; off by
-            default because it fits jaw-opening scans less well (0.07 mm on the
-            Bosphorus-style LFAU_26 and E_SURPRISE scans).
-        skin_chebyshev_rho: spectral-radius estimate in ``[0, 1)`` for the Chebyshev
-            acceleration of the skin solve (:func:`jaxface.pbd.iterate`); 0 = plain
-            sweeps (the default). With many sweeps (a converged reference, animation at
-            30+ sweeps) 0.95-0.97 reaches the plain solve's fixed point in several times
-            fewer sweeps; at the default 8 sweeps it changes little. There is no such option
-            for the muscle solve: its re-sampled action lines make it non-linear enough that
-            the accelerated iteration settled at other equilibria (up to 10 mm away on the
-            ICT face) or oscillated.
-        muscle_shell_stiffness: in [0, 1], stiffness of the muscles' shell constraint
-            (:func:`jaxface.anatomy.muscles.shell_targets`: each muscle stays a layer lying on
-            its support, shortening and bulging when it contracts). 0 gives the thesis's
-            muscle, whose top sheet sheared over the bottom one (up to 130 degrees, inverted)
-            and whose solve had not settled after 2,000 sweeps on the ICT face; with the
-            default 1 it settles within 0.15 mm in 32 sweeps.
-        fat_volume: in [0, 1], the volume preservation of the fat under the skin
-            (:func:`~jaxface.anatomy.skin.fat_thickness`): where the surface points the skin
-            is bound to squeeze together (a shortening muscle, the cheek ahead of a pulled
-            mouth corner, the soft tissue under the chin of an opened jaw) the skin rises,
-            where they spread (the lips of a widened mouth) it sinks. One value or a
-            ``(lower, upper)`` pair blended like ``footprint_mm``; 0 = off; default
-            :data:`FAT_VOLUME`.
+        backend: "pbd" (this module) or "ltw" (the Lee-Terzopoulos-Waters backend,
+            :func:`jaxface.ltw.rig.build_ltw_rig`).
+        config: the backend's options: a :class:`PBDRigConfig` for "pbd", a
+            :class:`jaxface.ltw.rig.LTWRigConfig` for "ltw"; None = the backend's defaults.
+        upper_teeth, lower_teeth, muscle_iterations, ...: the options of
+            :class:`PBDRigConfig` (see there), as keywords; None = the config's value. Given
+            with ``config``, they replace its fields. With ``backend="ltw"`` only those the
+            LTW backend has too (``eyelid_threshold``) are accepted.
 
     Returns:
-        :class:`Rig`.
+        :class:`Rig` ("pbd") or :class:`jaxface.ltw.rig.LTWRig` ("ltw"); both are
+        :class:`~jaxface.anatomy.interface.FaceRig`.
 
     Raises:
+        RigOptionError: an option or a config that the backend does not take (instead of
+            silently ignoring it).
         RigError, LandmarkError, MeshError: unusable inputs (named in the message).
     """
-    if backend == "ltw":
-        try:
-            from ..ltw.rig import build_ltw_rig
-        except ImportError as e:  # pragma: no cover - depends on the other backend
-            raise RigError(f"the LTW backend is not available ({e}).") from None
-        return build_ltw_rig(skin, landmarks, skull=skull, muscle_map=muscle_map)
-    if backend != "pbd":
-        raise RigError(f"unknown backend {backend!r}; use 'pbd' or 'ltw'.")
+    options = dict(
+        upper_teeth=upper_teeth,
+        lower_teeth=lower_teeth,
+        muscle_iterations=muscle_iterations,
+        skin_iterations=skin_iterations,
+        footprint_mm=footprint_mm,
+        footprint_cluster_mm=footprint_cluster_mm,
+        influence_radius=influence_radius,
+        eyelid_threshold=eyelid_threshold,
+        bending=bending,
+        jaw_follow_mm=jaw_follow_mm,
+        jaw_membrane=jaw_membrane,
+        skin_chebyshev_rho=skin_chebyshev_rho,
+        muscle_shell_stiffness=muscle_shell_stiffness,
+        fat_volume=fat_volume,
+    )
+    rb = rig_backend(backend)
+    return rb.build(skin, landmarks, skull, muscle_map, configure(rb, config, options))
+
+
+def _build_pbd(skin, landmarks, skull, muscle_map, config: PBDRigConfig) -> Rig:
+    """The PBD backend's builder (:func:`build_rig` with a complete :class:`PBDRigConfig`)."""
+    c = config
+    upper_teeth, lower_teeth = c.upper_teeth, c.lower_teeth
+    muscle_iterations, skin_iterations = c.muscle_iterations, c.skin_iterations
+    footprint_mm, footprint_cluster_mm = c.footprint_mm, c.footprint_cluster_mm
+    influence_radius, eyelid_threshold, bending = c.influence_radius, c.eyelid_threshold, c.bending
+    jaw_follow_mm, jaw_membrane = c.jaw_follow_mm, c.jaw_membrane
+    skin_chebyshev_rho, muscle_shell_stiffness = c.skin_chebyshev_rho, c.muscle_shell_stiffness
+    fat_volume = c.fat_volume
     if not isinstance(skin, TriMesh) and hasattr(skin, "mesh"):
         head = skin
         landmarks = head.landmarks if landmarks is None else landmarks
@@ -467,6 +416,9 @@ def build_rig(
         info=info,
     )
     return rig.with_iterations(skin_rho=skin_chebyshev_rho)
+
+
+register_backend("pbd", PBDRigConfig, _build_pbd)
 
 
 def jaw_follow_weights(
@@ -645,8 +597,8 @@ def synthesize(rig: Rig, activations, jaw: JawPose | None = None, cheek_puff=0.0
     """Synthesize the face for muscle activations and a jaw pose (quasi-static).
 
     Args:
-        rig: the :class:`Rig`, or a :class:`jaxface.ltw.rig.LTWRig` from
-            ``build_rig(..., backend="ltw")``.
+        rig: the :class:`Rig`, or any other :class:`~jaxface.anatomy.interface.FaceRig`
+            (a :class:`jaxface.ltw.rig.LTWRig` from ``build_rig(..., backend="ltw")``).
         activations: ``(M,)`` in [0, 1], ordered as ``rig.muscle_names``.
         jaw: :class:`JawPose` (degrees, mm; smoothly clamped to the limits); neutral if None.
         cheek_puff: AU33/34 air pressure in [0, 1] (outward cheek displacement of
@@ -661,10 +613,8 @@ def synthesize(rig: Rig, activations, jaw: JawPose | None = None, cheek_puff=0.0
     A rig built with ``backend="ltw"`` is synthesized by
     :func:`jaxface.ltw.rig.synthesize_ltw` (same controls, same units).
     """
-    if rig.backend == "ltw":
-        from ..ltw.rig import synthesize_ltw
-
-        return synthesize_ltw(cast(Any, rig), activations, jaw, cheek_puff)
+    if rig.backend != "pbd":  # another backend's rig synthesizes itself (FaceRig)
+        return rig.synthesize(activations, jaw, cheek_puff)
     jaw = JawPose() if jaw is None else jaw
     return _synth(rig, activations, jaw, cheek_puff).skin
 

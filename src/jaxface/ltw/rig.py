@@ -29,6 +29,10 @@ Units: mm, degrees for the jaw angles; forces in the paper's model units.
 
 from __future__ import annotations
 
+import dataclasses
+from dataclasses import dataclass
+from typing import ClassVar
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -36,6 +40,7 @@ import numpy as np
 
 from ..anatomy.frame import face_frame
 from ..anatomy.geometry import smooth_normals
+from ..anatomy.interface import RigConfig, register_backend
 from ..anatomy.jaw import JawModel, JawPose
 from ..anatomy.muscle_map import MuscleSpec, load_muscle_map, place_muscles
 from ..anatomy.skin import eyelid_vertices
@@ -50,6 +55,7 @@ from .waters import Fibre, build_waters, linear_fibre, sphincter_fibres
 
 __all__ = [
     "LTWRig",
+    "LTWRigConfig",
     "LTWInfo",
     "build_ltw_rig",
     "synthesize_ltw",
@@ -159,9 +165,39 @@ class LTWRig(eqx.Module):
 
     def with_iterations(self, n_steps: int) -> LTWRig:
         """A copy with another static number of relaxation steps."""
-        import dataclasses
-
         return dataclasses.replace(self, n_steps=int(n_steps))
+
+    def synthesize(self, activations, jaw=None, cheek_puff=0.0) -> jax.Array:
+        """:func:`synthesize_ltw` of this rig: ``(V, 3)`` skin, mm (the
+        :class:`~jaxface.anatomy.interface.FaceRig` method)."""
+        return synthesize_ltw(self, activations, jaw, cheek_puff)
+
+
+@dataclass(frozen=True)
+class LTWRigConfig(RigConfig):
+    """Options of the layered-tissue rig
+    (``build_rig(..., backend="ltw", config=LTWRigConfig(...))``); every default is
+    :func:`build_ltw_rig`'s, whose arguments these are.
+
+    Attributes:
+        params: :class:`LTWParams` (paper defaults when None).
+        fascia_fraction: fascia depth as a fraction of the skin-to-skull depth.
+        diagonals: shear (cross) springs in the dermal-fatty and muscle layers.
+        n_steps: quasi-static relaxation steps of :func:`synthesize_ltw` (static).
+        eyelid_threshold: normalised geodesic size of the eyelid regions (as the PBD rig).
+        puff_force: cheek-puff force per mm of the cheek-puff field, model units.
+        safety: safety factor on the largest eigenvalue for the relaxation constants.
+    """
+
+    backend: ClassVar[str] = "ltw"
+
+    params: LTWParams | None = None
+    fascia_fraction: float = 0.5
+    diagonals: bool = True
+    n_steps: int = 300
+    eyelid_threshold: float = 0.04
+    puff_force: float = 4.0
+    safety: float = 1.6
 
 
 # ----------------------------------------------------------------------------- build
@@ -492,3 +528,11 @@ def equilibrium_residual(rig: LTWRig, activations, jaw=None, cheek_puff=0.0) -> 
     R, t = R.astype(x.dtype), t.astype(x.dtype)
     _, ext = _drives(rig, a, R, t, jnp.asarray(cheek_puff, x.dtype))
     return float(jnp.max(residual(rig.model, x, a, R, t, external=ext)))
+
+
+def _build_from_config(skin, landmarks, skull, muscle_map, config: LTWRigConfig) -> LTWRig:
+    """The LTW backend's builder for :func:`jaxface.anatomy.rig.build_rig`."""
+    return build_ltw_rig(skin, landmarks, skull=skull, muscle_map=muscle_map, **config.options())
+
+
+register_backend("ltw", LTWRigConfig, _build_from_config)
