@@ -11,6 +11,9 @@ Modules (one responsibility each):
 * :mod:`~jaxface.anatomy.muscle_map` - the JSON muscle map and its placement on a face;
 * :mod:`~jaxface.anatomy.muscles` - muscle dynamics (contraction, layers; JAX);
 * :mod:`~jaxface.anatomy.skin` - skin constraints, binding, influence map, eyelids, teeth;
+* :mod:`~jaxface.anatomy.interface` - :class:`FaceRig` (the interface both backends
+  implement), :class:`RigConfig`, the backend registry;
+* :mod:`~jaxface.anatomy.rig_config` - :class:`PBDRigConfig` (the PBD rig's options);
 * :mod:`~jaxface.anatomy.rig` - :func:`build_rig`, :func:`synthesize`.
 
 Units: mm, +y up, +z forward, subject's left +x. Names are imported lazily.
@@ -35,6 +38,9 @@ _LAZY = {
     "PlacedMuscle": "muscle_map",
     "load_muscle_map": "muscle_map",
     "place_muscles": "muscle_map",
+    "FaceRig": "interface",
+    "RigConfig": "interface",
+    "PBDRigConfig": "rig_config",
     "Rig": "rig",
     "build_rig": "rig",
     "synthesize": "rig",

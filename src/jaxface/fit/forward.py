@@ -15,20 +15,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..anatomy.interface import FaceRig
 from ..anatomy.jaw import JawPose
-from ..anatomy.rig import synthesize
 from ..errors import FitError
-from ..ltw.rig import LTWRig, synthesize_ltw
 
 __all__ = ["ForwardModel", "synthesis_function", "exact_skin_and_vjp"]
 
 
-def synthesis_function(rig) -> Callable:
-    """``(a (M,), jaw (3,)) -> (V, 3)`` mm for a PBD :class:`~jaxface.anatomy.rig.Rig` or an
-    LTW rig (:class:`~jaxface.ltw.rig.LTWRig`)."""
-    if isinstance(rig, LTWRig):
-        return lambda a, j: synthesize_ltw(rig, a, JawPose.from_array(j))
-    return lambda a, j: synthesize(rig, a, JawPose.from_array(j))
+def synthesis_function(rig: FaceRig) -> Callable:
+    """``(a (M,), jaw (3,)) -> (V, 3)`` mm for a rig of either backend (a PBD
+    :class:`~jaxface.anatomy.rig.Rig` or an LTW :class:`~jaxface.ltw.rig.LTWRig`: its
+    :meth:`~jaxface.anatomy.interface.FaceRig.synthesize`)."""
+    return lambda a, j: rig.synthesize(a, JawPose.from_array(j))
 
 
 def exact_skin_and_vjp(exact_fn, a, jaw):

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax
@@ -72,6 +72,14 @@ class LTWInfo:
     """
 
     skin: TriMesh
+    landmarks: Any
+    frame: Any
+    skull: Any
+    placed: Any
+    specs: Any
+    depth: Any
+    mandible: Any
+    fibres: Any
 
     def __init__(self, **kw):
         self.__dict__.update(kw)
