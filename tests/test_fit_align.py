@@ -8,6 +8,7 @@ import pytest
 from jaxface.errors import FitError, LandmarkError
 from jaxface.fit.align import (
     MOUTH_CHIN_LABELS,
+    AlignmentResult,
     RigidTransform,
     align_scans,
     mouth_chin_mask,
@@ -152,6 +153,31 @@ def test_icp_recovers_known_motion_exactly_on_clean_data():
     assert res.residual.mean < 0.01
 
 
+def test_point_cloud_icp_recovers_known_motion_and_shares_the_result_type():
+    """The preprocessing ICP (nearest samples of a PointCloud, jaxface.io.preprocess.icp)
+    runs on the same robust_icp: on a dense sampling of the surface it recovers a known
+    motion to the sampling's accuracy and reports in the same ICPStage."""
+    from jaxface.alignment import AlignmentResult as StackResult
+    from jaxface.alignment import ICPStage, PointCloud
+    from jaxface.io.preprocess import AlignmentResult as IOResult
+    from jaxface.io.preprocess import icp
+
+    assert IOResult is StackResult and StackResult is AlignmentResult
+    rng = np.random.default_rng(4)
+    Vf, Ff = face_mesh(step=0.5, half=(40.0, 50.0))
+    Vm, _ = face_mesh(step=1.7, offset=0.37, half=(35.0, 45.0))
+    normals = SurfaceIndex(Vf, Ff).vertex_normals
+    T_true = random_rigid(rng, 2.0, 2.0)
+    moving = T_true.inverse().apply(Vm)
+    T, info = icp(moving, Vf, normals, iterations=40)
+    assert isinstance(info, ICPStage) and info.converged
+    ang, _, disp = transform_error(T, T_true, moving)
+    assert ang < 0.01 and disp < 0.01, (ang, disp)  # nearest samples of a 0.5 mm grid
+    assert info.rms < 0.01 and info.median < 0.01
+    with pytest.raises(FitError, match="PointCloud"):
+        PointCloud(Vf, normals[:-1])
+
+
 def test_alignment_tolerates_noise_holes_outliers_and_a_moving_mouth():
     rng = np.random.default_rng(2)
     Vf, Ff = face_mesh(step=1.5)
@@ -193,7 +219,7 @@ def test_similarity_alignment_recovers_scale():
     Vf, Ff = face_mesh(step=1.5)
     Vm, Fm = face_mesh(step=1.6, offset=0.3)
     lm = face_landmarks()
-    T_true = RigidTransform(random_rigid(rng, 3.0, 4.0).rotation, [1.0, -2.0, 3.0], 0.97)
+    T_true = RigidTransform(random_rigid(rng, 3.0, 4.0).rotation, np.array([1.0, -2.0, 3.0]), 0.97)
     inv = T_true.inverse()
     res = align_scans(
         (inv.apply(Vm), Fm),
@@ -219,7 +245,7 @@ def test_robust_icp_huber_and_failure():
     with pytest.raises(FitError, match="not roughly aligned"):
         robust_icp(pts + [0.0, 0.0, 200.0], idx)
     with pytest.raises(FitError, match="robust loss"):
-        robust_icp(pts, idx, loss="cauchy")
+        robust_icp(pts, idx, loss="cauchy")  # pyright: ignore[reportArgumentType]
 
 
 def test_alignment_needs_stable_landmarks():
