@@ -38,3 +38,13 @@ def _release_compiled_programs():
 def shared():
     """``shared("data", "ict", "ict_face.npz") -> Path``; skips/fails when absent."""
     return shared_path
+
+
+@pytest.fixture(scope="session")
+def default_rig():
+    """The default head's rig (``build_rig(generic_head())``), built once per session: its
+    NumPy build is the same for every module (rigs are immutable pytrees)."""
+    from jaxface.anatomy.rig import build_rig
+    from jaxface.head import generic_head
+
+    return build_rig(generic_head())

@@ -10,17 +10,16 @@ import pytest
 
 from jaxface import facs
 from jaxface.anatomy.jaw import JawPose
-from jaxface.anatomy.rig import build_rig, equilibrium_gap, synthesize, synthesize_state
+from jaxface.anatomy.rig import equilibrium_gap, synthesize, synthesize_state
 from jaxface.anatomy.skin import solve_skin
-from jaxface.head import generic_head
 
 #: Largest equilibrium gap (mm) the `converged` sweep preset may leave on the default head.
 GAP_CONVERGED_MM = 0.1
 
 
 @pytest.fixture(scope="module")
-def head_rig():
-    return build_rig(generic_head())
+def head_rig(default_rig):
+    return default_rig
 
 
 def _case(rig, aus, pitch):

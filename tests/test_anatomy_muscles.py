@@ -32,8 +32,8 @@ def head():
 
 
 @pytest.fixture(scope="module")
-def rig(head):
-    return build_rig(head)
+def rig(default_rig):
+    return default_rig
 
 
 def _solver(rig):

@@ -21,8 +21,8 @@ EPS = 1e-4  # finite-difference step (activations / degrees)
 
 
 @pytest.fixture(scope="module")
-def rig():
-    return build_rig(generic_head())
+def rig(default_rig):
+    return default_rig
 
 
 def _case_list(rig):

@@ -36,15 +36,15 @@ TRUE_PITCH = 5.0
 
 
 @pytest.fixture(scope="module")
-def round_trip():
+def round_trip(default_rig):
     from jaxface.anatomy.jaw import JawPose
-    from jaxface.anatomy.rig import Rig, build_rig, synthesize
+    from jaxface.anatomy.rig import Rig, synthesize
     from jaxface.fit.pipeline import SubjectOptions, fit_expressions, subject_from_rig
     from jaxface.head import generic_head
     from jaxface.io.scanner import SkinLandmarks, scan_skin
 
     head = generic_head()
-    rig = build_rig(head)
+    rig = default_rig
     assert isinstance(rig, Rig)  # the PBD backend
     bound = SkinLandmarks.of_rig(rig)
 
@@ -676,7 +676,7 @@ def test_gradient_correction_gives_the_exact_rigs_gradient(round_trip):
         )
 
 
-def test_bound_flip_restart_leaves_a_minimum_with_a_saturated_control():
+def test_bound_flip_restart_leaves_a_minimum_with_a_saturated_control(default_rig):
     """A fit trapped with a control at its upper bound, and the restart that frees it.
 
     The default head and rig; four true controls (buccinator R at its bound, 1) and the jaw,
@@ -696,13 +696,13 @@ def test_bound_flip_restart_leaves_a_minimum_with_a_saturated_control():
     (1.22e-2 mm^2, restarted to 2.07e-3); with the inner steps' QR solve, levator anguli oris L
     alone (5.5e-3 mm^2, restarted to 1.2e-5)."""
     from jaxface.anatomy.jaw import JawPose
-    from jaxface.anatomy.rig import Rig, build_rig, synthesize
+    from jaxface.anatomy.rig import Rig, synthesize
     from jaxface.fit.pipeline import SubjectOptions, fit_expressions, subject_from_rig
     from jaxface.head import generic_head
     from jaxface.io.scanner import SkinLandmarks, scan_skin
 
     head = generic_head()
-    rig = build_rig(head)
+    rig = default_rig
     assert isinstance(rig, Rig)  # the PBD backend
     bound = SkinLandmarks.of_rig(rig)
     truth = {

@@ -20,11 +20,8 @@ pytestmark = pytest.mark.timeout(1800)
 
 
 @pytest.fixture(scope="module")
-def rig():
-    from jaxface.anatomy.rig import build_rig
-    from jaxface.head import generic_head
-
-    return build_rig(generic_head())
+def rig(default_rig):
+    return default_rig
 
 
 def test_build_rig_refuses_nan_skin():

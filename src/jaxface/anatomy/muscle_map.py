@@ -78,6 +78,9 @@ class MuscleSpec:
         grid: ``(w, h)``; n_around: samples around a sphincter.
         max_contraction: fraction of the fibre length removed at activation 1.
         angles_deg: eyelid rotation per lid at activation 1 (degrees, + moves the lid down).
+        protrusion: sphincters only: forward motion of the ring (along the face's +z) per mm
+            of its radial contraction, dimensionless (the lips leave the dental arch as the
+            orbicularis oris purses them; 0: the ring only narrows, thesis sec. 4.3.2).
         note: free text.
     """
 
@@ -99,6 +102,7 @@ class MuscleSpec:
     n_around: int = 16
     max_contraction: float = 0.3
     angles_deg: dict | None = None
+    protrusion: float = 0.0
     note: str = ""
 
     @property
@@ -207,6 +211,14 @@ def load_muscle_map(path=None) -> list[MuscleSpec]:
         mc = float(d.get("max_contraction", 0.0))
         if not 0.0 <= mc < 1.0:
             raise RigError(f"muscle map {p}: {where} max_contraction must be in [0, 1), got {mc}.")
+        prot = d.get("protrusion", 0.0)
+        if isinstance(prot, bool) or not isinstance(prot, (int, float)) or not 0.0 <= prot <= 3.0:
+            raise RigError(
+                f"muscle map {p}: {where} protrusion must be a number in [0, 3] (mm forward per "
+                f"mm of radial contraction), got {prot!r}."
+            )
+        if prot and kind != "sphincter":
+            raise RigError(f"muscle map {p}: {where} protrusion applies to sphincters only.")
         grid = tuple(int(x) for x in d.get("grid", (2, 8)))
         if kind not in ("eyelid", "sphincter") and (len(grid) != 2 or min(grid) < 2):
             raise RigError(f"muscle map {p}: {where} grid must be [w >= 2, h >= 2], got {grid}.")
@@ -238,6 +250,7 @@ def load_muscle_map(path=None) -> list[MuscleSpec]:
                 n_around=int(d.get("n_around", 16)),
                 max_contraction=mc,
                 angles_deg=dict(d["angles_deg"]) if "angles_deg" in d else None,
+                protrusion=float(d.get("protrusion", 0.0)),
                 note=str(d.get("note", "")),
             )
             if spec.name in seen:

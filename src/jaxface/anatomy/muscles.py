@@ -133,6 +133,13 @@ POSITION_STIFFNESS = 0.2  # the same for every kind
 #: mid-point 1.2 mm back (README, Known limits, the lip stretcher; the 20 Bosphorus-style scans'
 #: mean error 0.601 -> 0.594 mm, bs901's lip stretcher 1.88x -> 2.07x better than B0).
 MODIOLUS_GAIN = 1.0
+#: ...and the other way: the orbicularis oris's contraction drags the modiolus, and with it
+#: the insertion ends of the corner muscles (their fibre samples move by the ring's contraction
+#: displacement at that mouth corner, fully at the insertion end, fading linearly to the
+#: origin), times this gain. A pucker draws the corners medially and, with the ring's
+#: protrusion, forward; the corner muscles and the cheek skin bound to them follow, as the
+#: modiolus is one node (1: the node moves with the ring).
+MODIOLUS_DRAG = 1.0
 MODIOLUS_SIGMA_MM = 9.0
 MODIOLUS_MAX_OFFSET_MM = 10.0  # corner muscles: insertion within this of the mouth corner
 STIFFNESS["passive"] = STIFFNESS["sheet"]
@@ -212,12 +219,16 @@ class MuscleSystem(eqx.Module):
             samples in ``(F, H)``; fib_bottom: ``(P,)`` their bottom particles.
         sph_ids, sph_w: ``(K, 3, n, 3)`` the three rings of every sphincter (inner, middle,
             outer); sph_bottom: ``(K, 3, n)``; sph_ctrl: ``(K,)``; sph_cmax: ``(K,)``;
-            sph_axes: ``(K, 2, 3)``; sph_ab: ``(K, 2)`` semi-axes, mm.
+            sph_axes: ``(K, 2, 3)``; sph_ab: ``(K, 2)`` semi-axes, mm; sph_forward: ``(K, 3)``
+            unit normal of each ring's plane, toward the face's front; sph_protrusion: ``(K,)``
+            forward mm per mm of radial contraction.
         mod_w: ``(K, 3, n, 2)`` modiolus weights in [0, 1] of every sphincter ring sample,
             toward the left (0) and the right (1) modiolus; mod_end, mod_last, mod_fw:
             ``(2, J)`` per side the corner-muscle fibres' insertion-end sample (flat index
             into the ``(F * H)`` samples), their action-line end (fibre index) and weight
-            (1 / fibres of the muscle; 0 pads): see :data:`MODIOLUS_GAIN`.
+            (1 / fibres of the muscle; 0 pads): see :data:`MODIOLUS_GAIN`; fib_mod_side:
+            ``(F,)`` the modiolus (0 left, 1 right, 2 none) each fibre inserts into, fib_ramp:
+            ``(F, H)`` 0 at its origin to 1 at its insertion end (:data:`MODIOLUS_DRAG`).
         groups: the engine's distance and bending groups (all muscles, :mod:`jaxface.pbd`).
         positions: anchors of the bottom particles to their action-line samples (targets set
             every sweep, :func:`sample_targets`); shell: anchors of the top particles to their
@@ -262,7 +273,11 @@ class MuscleSystem(eqx.Module):
     sph_cmax: jax.Array
     sph_axes: jax.Array
     sph_ab: jax.Array
+    sph_forward: jax.Array
+    sph_protrusion: jax.Array
     mod_w: jax.Array
+    fib_mod_side: jax.Array
+    fib_ramp: jax.Array
     mod_end: jax.Array
     mod_last: jax.Array
     mod_fw: jax.Array
@@ -429,6 +444,8 @@ def build_muscle_system(
                     cmax=cmax,
                     axes=p.axes,
                     ab=p.semi_axes,
+                    fwd=_ring_forward(p.axes),
+                    prot=float(p.spec.protrusion),
                     skin=np.stack([p.insertion_skin, p.origin_skin]),
                 )
             )
@@ -528,6 +545,8 @@ def build_muscle_system(
         sph_cmax=np.array([s["cmax"] for s in sph], float),
         sph_axes=np.stack([s["axes"] for s in sph]) if sph else np.zeros((0, 2, 3)),
         sph_ab=np.stack([s["ab"] for s in sph]) if sph else np.zeros((0, 2)),
+        sph_forward=np.stack([s["fwd"] for s in sph]) if sph else np.zeros((0, 3)),
+        sph_protrusion=np.array([s["prot"] for s in sph], float),
         **mod,
         groups=tuple(groups),
         positions=positions,
@@ -782,7 +801,17 @@ def _modiolus(mod_fib, fib, sph, rest, h_max: int) -> dict:
             g[..., i] = np.exp(-0.5 * (d / MODIOLUS_SIGMA_MM) ** 2)
         # each sample follows its nearer modiolus, the two blended across the mid-line
         mod_w[k] = g * (g / np.maximum(g.sum(axis=-1, keepdims=True), 1e-300))
-    return dict(mod_w=mod_w, mod_end=end, mod_last=last, mod_fw=fw)
+    side = np.full(len(fib), 2, np.int32)  # 2: the fibre is not a corner muscle's
+    for s_ in (0, 1):
+        if np.any(mod_w[..., s_] > 0):
+            for fi, _w, _pid in mod_fib[s_]:
+                side[fi] = s_
+    ramp = np.zeros((len(fib), h_max))
+    for i, f in enumerate(fib):
+        ramp[i, : f[4]] = np.arange(f[4]) / max(f[4] - 1, 1)
+    return dict(
+        mod_w=mod_w, fib_mod_side=side, fib_ramp=ramp, mod_end=end, mod_last=last, mod_fw=fw
+    )
 
 
 def _ring_end(ring, u: float):
@@ -807,6 +836,14 @@ def _ring_end(ring, u: float):
     return w @ ring[[(k - 1) % n, k % n, (k + 1) % n, (k + 2) % n]]
 
 
+def _ring_forward(axes) -> np.ndarray:
+    """``(3,)`` unit normal of a sphincter ring's plane (its two ``(2, 3)`` ellipse axes),
+    oriented toward the face's front (+z)."""
+    n = np.cross(np.asarray(axes[0], float), np.asarray(axes[1], float))
+    n = n / max(float(np.linalg.norm(n)), 1e-12)
+    return n if n[2] >= 0 else -n
+
+
 def moved_skull_points(system: MuscleSystem, R, t):
     """``(S, 3)`` skull surface points after the jaw motion ``p' = R p + t`` on the mandible."""
     sk = system.skull_rest.astype(R.dtype)
@@ -827,9 +864,8 @@ def sample_targets(system: MuscleSystem, G, activations):
     pts = _eval_support(G, system.fib_ids, system.fib_w)  # (F, m, 3)
     c = acts[system.fib_ctrl] * system.fib_cmax.astype(dt)  # ctrl -1 -> 0
     s = _sample_var(pts, system.fib_h.astype(dt), system.h_max, c)  # (F, H, 3)
-    tg_f = s.reshape(-1, 3)[system.fib_valid]
     if system.sph_ids.shape[0] == 0:
-        return system.fib_bottom, tg_f
+        return system.fib_bottom, s.reshape(-1, 3)[system.fib_valid]
     P = _eval_support(G, system.sph_ids, system.sph_w)  # (K, 3, n, 3)
     # modiolus: contraction displacement of the corner muscles' insertion ends, per side
     pull = s.reshape(-1, 3)[system.mod_end] - pts[system.mod_last, -1]  # (2, J, 3)
@@ -844,8 +880,26 @@ def sample_targets(system: MuscleSystem, G, activations):
     r2 = (xx / ab[:, :1]) ** 2 + (yy / ab[:, 1:]) ** 2
     r = jnp.minimum(jnp.sqrt(jnp.maximum(r2, 1e-12)), 1.0)
     cs = acts[system.sph_ctrl] * system.sph_cmax.astype(dt)  # (K,)
-    delta = cs[:, None, None] * (o - inner) * jnp.cos(0.5 * jnp.pi * (1.0 - r))[..., None]
+    falloff = jnp.cos(0.5 * jnp.pi * (1.0 - r))  # (K, n)
+    delta = cs[:, None, None] * (o - inner) * falloff[..., None]
+    # protrusion: the ring also moves forward by `protrusion` times its radial motion, whose
+    # length cs |o - inner| falloff is linear in the activation (smooth at rest)
+    radius = jnp.sqrt(jnp.sum((o - inner) ** 2, axis=-1))  # (K, n), > 0 on a placed ring
+    fwd = (system.sph_protrusion.astype(dt) * cs)[:, None] * radius * falloff  # (K, n)
+    delta = delta + fwd[..., None] * system.sph_forward.astype(dt)[:, None, :]
     tg_s = (P + delta[:, None]).reshape(-1, 3)
+    # the ring drags the modiolus too: each side's corner-muscle fibres move by the ring's
+    # contraction displacement at that modiolus (the mean over the ring samples weighted by
+    # their modiolus weight), fully at the insertion end and fading linearly to the origin
+    mw = system.mod_w.astype(dt)[:, 1]  # (K, n, 2): the middle ring
+    dr = jnp.einsum("kns,knd->sd", mw, delta) / jnp.maximum(
+        jnp.sum(mw, axis=(0, 1))[:, None], 1e-12
+    )  # (2, 3)
+    dr = jnp.concatenate([dr, jnp.zeros((1, 3), dt)])  # row 2: fibres off the modiolus
+    s = s + MODIOLUS_DRAG * system.fib_ramp.astype(dt)[..., None] * dr[system.fib_mod_side][
+        :, None, :
+    ]
+    tg_f = s.reshape(-1, 3)[system.fib_valid]
     return (
         jnp.concatenate([system.fib_bottom, system.sph_bottom.reshape(-1)]),
         jnp.concatenate([tg_f, tg_s]),

@@ -1,0 +1,135 @@
+"""The anatomy's expressive range (issue 44), pinned qualitatively on the default head:
+pursed lips move the mouth corners toward the mid-line and forward, the cheeks hollow as the
+lips protrude, the frontalis lifts the brows by more than 10 mm, and the sphincter's
+protrusion is smooth at rest. Units mm."""
+
+import json
+from importlib.resources import files
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxface import facs
+from jaxface.anatomy.muscle_map import load_muscle_map
+from jaxface.anatomy.muscles import moved_skull_points, sample_targets
+from jaxface.anatomy.rig import synthesize
+from jaxface.errors import RigError
+from jaxface.head import generic_head
+from jaxface.normals import vertex_normals
+
+
+@pytest.fixture(scope="module")
+def head():
+    return generic_head()
+
+
+@pytest.fixture(scope="module")
+def rest(default_rig):
+    return np.asarray(synthesize(default_rig, default_rig.activations({})))
+
+
+def _aus(rig, aus):
+    a, jaw, puff = facs.aus_to_controls(aus, rig.muscle_names)
+    return np.asarray(synthesize(rig, a, jaw, puff))
+
+
+def _vertex(rest, head, label):
+    return int(np.argmin(np.linalg.norm(rest - np.asarray(head.landmarks[label]), axis=1)))
+
+
+@pytest.fixture(scope="module")
+def pucker(default_rig, rest):
+    return _aus(default_rig, {"AU18": 1.0}) - rest
+
+
+def test_pucker_moves_the_corners_medially_and_forward(head, rest, pucker):
+    for label, medial in (("Left mouth corner", -1.0), ("Right mouth corner", 1.0)):
+        d = pucker[_vertex(rest, head, label)]
+        assert medial * d[0] >= 6.0, (label, d)  # toward the mid-line (x = 0)
+        assert d[2] >= 6.0, (label, d)  # forward (+z)
+    # symmetric: the two corners mirror each other
+    dl = pucker[_vertex(rest, head, "Left mouth corner")]
+    dr = pucker[_vertex(rest, head, "Right mouth corner")]
+    np.testing.assert_allclose(dl * [-1, 1, 1], dr, atol=0.3)
+
+
+def test_the_cheeks_hollow_when_the_lips_protrude(default_rig, head, rest, pucker):
+    n = np.asarray(vertex_normals(rest, np.asarray(default_rig.triangles)))
+    for label, side in (("Left mouth corner", 1.0), ("Right mouth corner", -1.0)):
+        c = np.asarray(head.landmarks[label])
+        dx = side * (rest[:, 0] - c[0])
+        # the lower lateral cheek: 12-35 mm lateral of the mouth corner, 20 mm below to 10 above
+        region = (dx > 12) & (dx < 35) & (rest[:, 1] > c[1] - 20) & (rest[:, 1] < c[1] + 10)
+        region &= rest[:, 2] > c[2] - 40
+        assert region.sum() > 50
+        inward = -np.sum(pucker[region] * n[region], axis=1)
+        assert inward.mean() > 0.3, inward.mean()
+        assert np.mean(inward > 0) > 0.75
+
+
+def test_the_frontalis_lifts_the_brows_more_than_10_mm(default_rig, head, rest):
+    d = _aus(default_rig, {"AU1": 1.0, "AU2": 1.0}) - rest
+    for side in ("left", "right"):
+        rise = {
+            part: d[_vertex(rest, head, f"{part} {side} eyebrow"), 1]
+            for part in ("Inner", "Middle", "Outer")
+        }
+        assert rise["Inner"] >= 10.0, rise
+        assert min(rise.values()) >= 7.0, rise
+
+
+def test_protrusion_is_smooth_at_rest_and_moves_the_ring_forward(default_rig):
+    """The ring's targets (:func:`~jaxface.anatomy.muscles.sample_targets` on the rest
+    support): the forward term scales the radial contraction's length, which is linear in the
+    activation, so the derivative at activation 0 is finite and matches a one-sided finite
+    difference; at the ring's lateral ends (the mouth corners, where the radial motion is
+    medial) the forward motion is ``protrusion`` times the in-plane motion."""
+    system = default_rig.muscles
+    spec = {s.name: s for s in default_rig.info.specs}["orbicularis_oris"]
+    skull = moved_skull_points(system, jnp.eye(3), jnp.zeros(3))
+    G = system.support(skull, system.rest)
+    i = default_rig.index("orbicularis_oris")
+    a0 = default_rig.activations({})
+    e = jnp.zeros_like(a0).at[i].set(1.0)
+
+    def f(t):
+        return sample_targets(system, G, a0 + t * e)[1]
+
+    jv = jax.jvp(f, (jnp.asarray(0.0),), (jnp.asarray(1.0),))[1]
+    assert bool(jnp.all(jnp.isfinite(jv)))
+    h = 1e-6
+    fd = (f(jnp.asarray(h)) - f(jnp.asarray(0.0))) / h
+    np.testing.assert_allclose(np.asarray(fd), np.asarray(jv), atol=1e-5 * float(jnp.abs(jv).max()))
+    ids = np.asarray(sample_targets(system, G, a0)[0])
+    d = np.asarray(f(jnp.asarray(1.0)) - f(jnp.asarray(0.0)))
+    k = list(np.asarray(system.sph_ctrl)).index(i)
+    ring = np.asarray(system.sph_bottom)[k, 0]  # the inner ring's particles
+    row = {int(p): j for j, p in enumerate(ids)}
+    dr = d[[row[int(p)] for p in ring]]
+    ends = np.argsort(np.abs(np.asarray(system.rest)[ring, 0]))[-2:]  # the lateral ends
+    for j in ends:
+        ratio = dr[j, 2] / np.linalg.norm(dr[j, :2])
+        assert 0.8 * spec.protrusion < ratio < 1.25 * spec.protrusion, (j, dr[j])
+
+
+def _write_map(tmp_path, edit):
+    m = json.loads((files("jaxface") / "data" / "muscle_map.json").read_text())
+    for x in m["muscles"]:
+        if x["name"] in edit:
+            x.update(edit[x["name"]])
+    p = tmp_path / "map.json"
+    p.write_text(json.dumps(m))
+    return p
+
+
+def test_muscle_map_checks_protrusion(tmp_path):
+    specs = {s.name: s for s in load_muscle_map()}
+    assert specs["orbicularis_oris"].protrusion > 0
+    assert specs["orbicularis_oculi_L"].protrusion == 0.0
+    with pytest.raises(RigError, match="sphincters only"):
+        load_muscle_map(_write_map(tmp_path, {"zygomaticus_major": {"protrusion": 0.5}}))
+    for bad in (-0.1, "1", 5.0, True):
+        with pytest.raises(RigError, match="protrusion"):
+            load_muscle_map(_write_map(tmp_path, {"orbicularis_oris": {"protrusion": bad}}))
