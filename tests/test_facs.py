@@ -110,3 +110,20 @@ def test_bad_inputs(names):
         facs.au_intensities(np.zeros(3), names)
     with pytest.raises(RigError, match="unknown emotion"):
         facs.emotion_controls("boredom", names)
+
+
+def test_intensity_letters_follow_the_facs_bins():
+    from jaxface.facs import INTENSITY_LETTERS, intensity_letter, intensity_letters
+
+    bounds = [lo for _, lo in INTENSITY_LETTERS]
+    assert bounds == sorted(bounds) and bounds[0] > 0 and bounds[-1] < 1
+    assert intensity_letter(0.0) is None and intensity_letter(0.099) is None
+    expected = {0.1: "A", 0.2: "A", 0.3: "B", 0.5: "C", 0.69: "C", 0.7: "D", 0.95: "E", 1.0: "E"}
+    for x, letter in expected.items():
+        assert intensity_letter(x) == letter, x
+    # every letter is reachable, in order, as the intensity grows
+    seen = [intensity_letter(x) for x in np.linspace(0, 1, 1001)]
+    assert [k for i, k in enumerate(seen) if k and (i == 0 or seen[i - 1] != k)] == list("ABCDE")
+    assert intensity_letters({"AU12": 0.8, "AU6": 0.05, "AU1": 0.3}) == {"AU12": "D", "AU1": "B"}
+    with pytest.raises(ValueError, match="finite"):
+        intensity_letter(float("nan"))

@@ -198,6 +198,11 @@ def test_sparse_au_readout_of_the_round_trip_names_its_aus(round_trip):
         doc["au_sparse"] == pytest.approx(sp)
         and doc["au_sparse_misfit_mm"] == res.au_sparse_misfit_mm
     )
+    # the FACS letters of the JSON are those of the intensities
+    from jaxface.facs import intensity_letters
+
+    assert doc["au_intensity_letters"] == intensity_letters(res.au_intensities)
+    assert set(doc["au_intensity_letters"].values()) <= set("ABCDE")
 
 
 def test_au_motion_sparse_terms_equal_the_dense_reduced_model(round_trip):

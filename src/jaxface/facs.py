@@ -42,6 +42,9 @@ __all__ = [
     "au_intensities",
     "au_decomposition",
     "au_dict",
+    "INTENSITY_LETTERS",
+    "intensity_letter",
+    "intensity_letters",
     "sort_aus",
 ]
 
@@ -327,3 +330,38 @@ def au_dict(aus, values, jaw=None, cheek_puff: float = 0.0) -> dict[str, float]:
     if cheek_puff:
         out["AU34"] = float(np.clip(cheek_puff, 0.0, 1.0))
     return sort_aus(out)
+
+
+#: FACS intensity letters (Ekman, Friesen & Hager 2002: A trace, B slight, C marked or
+#: pronounced, D severe or extreme, E maximum) as lower bounds on the intensity in [0, 1].
+#: The manual's scale is not even: A and E are narrow and C and D cover most of the range, so
+#: the bins are unequal too; below A's bound the AU is not scored.
+INTENSITY_LETTERS = (("A", 0.10), ("B", 0.25), ("C", 0.45), ("D", 0.70), ("E", 0.90))
+
+
+def intensity_letter(x: float) -> str | None:
+    """The FACS letter ``"A"``..``"E"`` of an intensity in [0, 1] (:data:`INTENSITY_LETTERS`),
+    or None below A (not scored).
+
+    Raises:
+        ValueError: ``x`` is not finite.
+    """
+    x = float(x)
+    if not np.isfinite(x):
+        raise ValueError(f"an AU intensity must be finite, got {x}.")
+    letter = None
+    for name, lo in INTENSITY_LETTERS:
+        if x >= lo:
+            letter = name
+    return letter
+
+
+def intensity_letters(intensities: dict) -> dict[str, str]:
+    """``{AU: letter}`` for the AUs of ``{AU: intensity}`` scored A or above (in the same
+    order)."""
+    out = {}
+    for k, v in intensities.items():
+        letter = intensity_letter(v)
+        if letter is not None:
+            out[k] = letter
+    return out

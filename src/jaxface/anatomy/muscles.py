@@ -896,9 +896,12 @@ def sample_targets(system: MuscleSystem, G, activations):
         jnp.sum(mw, axis=(0, 1))[:, None], 1e-12
     )  # (2, 3)
     dr = jnp.concatenate([dr, jnp.zeros((1, 3), dt)])  # row 2: fibres off the modiolus
-    s = s + MODIOLUS_DRAG * system.fib_ramp.astype(dt)[..., None] * dr[system.fib_mod_side][
-        :, None, :
-    ]
+    s = (
+        s
+        + MODIOLUS_DRAG
+        * system.fib_ramp.astype(dt)[..., None]
+        * dr[system.fib_mod_side][:, None, :]
+    )
     tg_f = s.reshape(-1, 3)[system.fib_valid]
     return (
         jnp.concatenate([system.fib_bottom, system.sph_bottom.reshape(-1)]),

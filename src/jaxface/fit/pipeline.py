@@ -39,7 +39,7 @@ from ..anatomy.jaw import JawPose
 from ..anatomy.rig import build_rig
 from ..atomic import ensure_out_dir, write_json_atomic
 from ..errors import FitError, LandmarkError
-from ..facs import au_intensities
+from ..facs import au_intensities, intensity_letters
 from ..head import generic_head
 from ..interop.arkit import readout_for_subject
 from ..io import load_scan
@@ -613,6 +613,7 @@ class ExpressionFit:
             "scan": self.stem,
             "activations": {k: float(v) for k, v in self.activations.items()},
             "au_intensities": {k: float(v) for k, v in self.au_intensities.items()},
+            "au_intensity_letters": intensity_letters(self.au_intensities),
             "au_motion_mm": {k: float(v) for k, v in self.au_motion_mm.items()},
             "au_sparse": {k: float(v) for k, v in self.au_sparse.items()},
             "au_sparse_misfit_mm": self.au_sparse_misfit_mm,
