@@ -88,4 +88,6 @@ def fit_magnitude(
         return float((d if cap_mm is None else np.minimum(d, float(cap_mm))).mean())
 
     r = minimize_scalar(cost, bounds=bounds, method="bounded", options={"xatol": 1e-3})
-    return float(r.x), float(r.fun)
+    # scipy is untyped: pyright's inferred result type of minimize_scalar depends on its
+    # analysis order (object in a whole-tree run), the attributes are OptimizeResult's
+    return float(r.x), float(r.fun)  # pyright: ignore[reportAttributeAccessIssue]
