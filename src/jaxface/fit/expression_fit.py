@@ -1,0 +1,292 @@
+"""The result of fitting one expression scan, :class:`ExpressionFit` (activations, jaw pose, AU
+intensities, fitted skin in mm, metrics, baselines), and its ``<stem>.json`` contract
+(:data:`JSON_KEYS`), fitted mesh and picture."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..atomic import ensure_out_dir, write_json_atomic
+from ..facs import intensity_letters
+from ..mesh import save_mesh
+from ..render import Layer, draw, save_figure
+from .metrics import SurfaceIndex
+from .options import FitOptions
+from .params import rigid_numpy
+from .solve import PointFit
+
+__all__ = ["ExpressionFit", "JSON_KEYS"]
+
+#: top-level keys of the ``<stem>.json`` written by :meth:`ExpressionFit.write`
+JSON_KEYS = (
+    "activations",
+    "au_intensities",
+    "au_intensity_letters",
+    "au_motion_mm",
+    "au_sparse",
+    "jaw",
+    "rigid",
+    "metrics",
+    "baselines",
+    "solver",
+    "frame",
+    "quality",
+    "arkit",
+    "arkit_detail",
+)
+
+
+@dataclass
+class ExpressionFit:
+    """The fit of one expression scan (see :meth:`to_dict` for the JSON contract).
+
+    Attributes:
+        stem: the scan's file stem; scan: the :class:`jaxface.io.Scan`.
+        alignment: :class:`jaxface.fit.align.AlignmentResult` (scan -> neutral frame).
+        fit: the :class:`~jaxface.fit.solve.PointFit` (neutral frame).
+        fitted: the fitted skin, :class:`jaxface.mesh.TriMesh` in the scan's own frame, mm.
+        fitted_landmarks: the rig's landmarks on it (scan frame, mm).
+        activations: muscle -> activation; au_intensities: AU -> intensity.
+        au_motion_mm: AU -> RMS skin motion (mm) that AU's share of the fit produces alone
+            (:func:`jaxface.fit.au_motion.au_skin_motion`): which AUs the expression *shows*.
+        au_sparse: AU -> intensity of the sparsest AU combination that reproduces the fit's
+            skin motion (:func:`jaxface.fit.au_motion.au_sparse`); au_sparse_misfit_mm: the RMS
+            distance (mm) between that combination's motion and the fit's.
+        metrics: :class:`jaxface.fit.metrics.FitMetrics` of the fit; baselines: ``{"B0":
+            FitMetrics, "B1": FitMetrics}``; baseline_meshes: ``{"B0": TriMesh, "B1": TriMesh}``.
+        muscle_names: the rig's control order.
+        arkit: ARKit-52 name -> coefficient in [0, 1] read from the fitted skin motion
+            (:mod:`jaxface.interop.arkit`), or None when unavailable; arkit_detail: each
+            coefficient's contribution (mm), the residual (mm), or the reason it is missing.
+    """
+
+    stem: str
+    scan: Any
+    alignment: Any
+    fit: PointFit
+    fitted: Any
+    fitted_landmarks: Any
+    activations: dict
+    au_intensities: dict
+    au_motion_mm: dict
+    metrics: Any
+    baselines: dict
+    baseline_meshes: dict
+    muscle_names: tuple
+    backend: str
+    options: FitOptions
+    notes: list = field(default_factory=list)
+    face_mask: np.ndarray | None = None
+    au_sparse: dict = field(default_factory=dict)
+    au_sparse_misfit_mm: float | None = None
+    quality: Any = None
+    arkit: dict | None = None
+    arkit_detail: dict = field(default_factory=dict)
+
+    @property
+    def status(self) -> str:
+        return self.fit.status
+
+    @property
+    def jaw(self) -> dict:
+        j = self.fit.jaw_effective
+        return {"pitch_deg": float(j[0]), "yaw_deg": float(j[1]), "protrusion_mm": float(j[2])}
+
+    def rigid_dict(self) -> dict:
+        R, t = rigid_numpy(self.fit.rigid, self.fit.centre)
+        Tn = self.alignment.transform  # scan -> neutral
+        # fitted skin in the scan frame = Tn^-1 (R x + t) for rig coordinates x
+        Ti = Tn.inverse()
+        M = Ti.rotation @ R
+        tt = Ti.rotation @ t + Ti.translation
+        return {
+            "alignment": {
+                "description": "scan frame -> neutral scan frame (p_neutral = R p_scan + t), mm",
+                **self.alignment.to_dict(),
+            },
+            "correction": {
+                "description": "fitted rigid correction in the neutral frame: x -> c + R(w) (x - c) + t",
+                "rotation_vector_deg": [float(x) for x in self.fit.rigid[:3]],
+                "translation_mm": [float(x) for x in self.fit.rigid[3:]],
+                "centre_mm": [float(x) for x in self.fit.centre],
+            },
+            "rig_to_scan": {
+                "description": "rig (registered neutral) coordinates -> this scan's frame: p = R x + t, mm",
+                "rotation": M.tolist(),
+                "translation": tt.tolist(),
+            },
+        }
+
+    def solver_dict(self) -> dict:
+        f = self.fit
+        return {
+            "status": f.status,
+            "converged": f.status == "successful",
+            "steps": f.steps,
+            "time_s": f.seconds,
+            "method": "optimistix LevenbergMarquardt (forward-mode Jacobian) on the rig's reduced model "
+            "with exact-rig defect correction; correspondences refreshed per outer iteration"
+            + (
+                f"; {self.options.exact_steps} exact-rig LM steps at the end"
+                if self.options.exact_steps
+                else ""
+            ),
+            "backend": self.backend,
+            "outer_iterations": [r.to_dict() for r in f.reports],
+            "jaw_start_pitch_deg": f.start_pitch,
+            "jaw_as_fitted": {
+                "pitch_deg": float(f.jaw[0]),
+                "yaw_deg": float(f.jaw[1]),
+                "protrusion_mm": float(f.jaw[2]),
+            },
+            "residual_mm": f.residual_mm,
+            "restart": dict(f.restart) if f.restart else None,
+            "notes": list(self.notes),
+        }
+
+    def frame_dict(self) -> dict:
+        return {
+            "name": "scan",
+            "description": "the input scan's own coordinate frame (the .fitted.ply and every landmark "
+            "and metric are in it)",
+            "scan": str(getattr(self.scan, "path", "") or self.stem),
+            "units": "mm",
+            "axes": "+y up, +z toward the viewer (the face looks along +z), subject's left +x",
+        }
+
+    def to_dict(self) -> dict:
+        """The JSON contract of ``jaxface fit`` (mm, degrees)."""
+        return {
+            "scan": self.stem,
+            "activations": {k: float(v) for k, v in self.activations.items()},
+            "au_intensities": {k: float(v) for k, v in self.au_intensities.items()},
+            "au_intensity_letters": intensity_letters(self.au_intensities),
+            "au_motion_mm": {k: float(v) for k, v in self.au_motion_mm.items()},
+            "au_sparse": {k: float(v) for k, v in self.au_sparse.items()},
+            "au_sparse_misfit_mm": self.au_sparse_misfit_mm,
+            "jaw": self.jaw,
+            "rigid": self.rigid_dict(),
+            "metrics": self.metrics.to_dict(),
+            "baselines": {k: v.to_dict() for k, v in self.baselines.items()},
+            "solver": self.solver_dict(),
+            "frame": self.frame_dict(),
+            "quality": None if self.quality is None else self.quality.to_dict(),
+            "arkit": None if self.arkit is None else {k: float(v) for k, v in self.arkit.items()},
+            "arkit_detail": dict(self.arkit_detail),
+        }
+
+    def strongest_aus(
+        self, n: int = 5, *, bilateral_only: bool = False, by: str = "intensity"
+    ) -> list[tuple[str, float]]:
+        """The ``n`` strongest AUs, strongest first: ``(name, intensity)`` with
+        ``by="intensity"`` (:attr:`au_intensities`), ``(name, mm)`` with ``by="motion"``
+        (:attr:`au_motion_mm`, the skin motion each AU accounts for), ``(name, intensity)``
+        with ``by="sparse"`` (:attr:`au_sparse`, the fewest AUs that reproduce the motion)."""
+        srcs = {
+            "intensity": self.au_intensities,
+            "motion": self.au_motion_mm,
+            "sparse": self.au_sparse,
+        }
+        if by not in srcs:
+            raise ValueError(f"by must be 'intensity', 'motion' or 'sparse', got {by!r}.")
+        src = srcs[by]
+        items = [(k, v) for k, v in src.items() if not (bilateral_only and k[-1] in "LR")]
+        return sorted(items, key=lambda kv: -kv[1])[:n]
+
+    def write(self, out_dir, *, pictures: bool = False) -> dict[str, Path]:
+        """Write ``<stem>.json``, ``<stem>.fitted.ply`` (and ``<stem>.fit.png``). Returns the
+        paths."""
+        out = ensure_out_dir(out_dir)
+        files = {}
+        p = out / f"{self.stem}.json"
+        write_json_atomic(p, _jsonable(self.to_dict()))
+        files["json"] = p
+        m = out / f"{self.stem}.fitted.ply"
+        save_mesh(m, self.fitted, units="mm")
+        files["ply"] = m
+        if pictures:
+            files["picture"] = self.picture(out / f"{self.stem}.fit.png")
+        return files
+
+    def picture(self, path) -> Path:
+        """Before/after panel: the scan, B0 (before), the fit, and the fit coloured by its
+        distance to the scan (mm, colour bar)."""
+        import os
+
+        os.environ.setdefault("MPLBACKEND", "Agg")
+        import matplotlib
+        import matplotlib.cm
+        import matplotlib.colors
+        from matplotlib.figure import Figure
+
+        v, tr, _ = self.scan.mesh_arrays()
+        fv = np.asarray(self.fitted.vertices)
+        ft = np.asarray(self.fitted.triangles)
+        face = self._face_mask()
+        err = np.full(len(fv), np.nan)
+        cp = SurfaceIndex(v, tr).query(fv[face], max_distance=20.0)
+        e = np.where(cp.on_boundary, np.nan, cp.distances)
+        err[face] = e
+        hi = float(np.nanpercentile(err, 98)) if np.isfinite(err).any() else 1.0
+        hi = max(hi, 0.5)
+        ftri = face[ft].all(axis=1)
+        sub = ft[ftri]
+        b0 = self.baseline_meshes["B0"]
+        bounds = np.stack([v.min(0), v.max(0)])
+        panels = [
+            ("scan", Layer(v, tr)),
+            ("before (B0: neutral)", Layer(np.asarray(b0.vertices), sub)),
+            ("fit", Layer(fv, sub)),
+            (
+                "fit: distance to scan",
+                Layer(
+                    fv, sub, scalars=err, cmap="magma", vmin=0.0, vmax=hi, shade=0.55, specular=0.04
+                ),
+            ),
+        ]
+        dpi, px = 100, 360
+        fig = Figure(figsize=(len(panels) * px / dpi + 1.0, px / dpi + 0.4), dpi=dpi)
+        axes = fig.subplots(1, len(panels), squeeze=False)[0]
+        fig.subplots_adjust(
+            left=0.005, right=1.0 - 1.0 / fig.get_figwidth(), bottom=0.01, top=0.88, wspace=0.02
+        )
+        for ax, (name, layer) in zip(axes, panels):
+            draw(ax, [layer], "front", width=px, height=px, bounds=bounds, title=name)
+        sm = matplotlib.cm.ScalarMappable(
+            norm=matplotlib.colors.Normalize(0.0, hi), cmap=matplotlib.colormaps["magma"]
+        )
+        cax = fig.add_axes((1.0 - 0.8 / fig.get_figwidth(), 0.12, 0.18 / fig.get_figwidth(), 0.7))
+        fig.colorbar(sm, cax=cax).set_label("distance to scan (mm)")
+        s = self.metrics.scan_to_fit["all"]
+        fig.suptitle(
+            f"{self.stem}: scan-to-fit mean {s.mean:.2f} mm (B0 "
+            f"{self.baselines['B0'].scan_to_fit['all'].mean:.2f} mm), status {self.status}",
+            fontsize=10,
+        )
+        return save_figure(fig, path)
+
+    def _face_mask(self) -> np.ndarray:
+        m = self.face_mask
+        return np.ones(len(self.fitted.vertices), bool) if m is None else np.asarray(m, bool)
+
+
+def _jsonable(x):
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _jsonable(x.tolist())
+    if isinstance(x, (np.floating, float)):
+        v = float(x)
+        return v if math.isfinite(v) else None
+    if isinstance(x, (np.integer,)):
+        return int(x)
+    if isinstance(x, (np.bool_,)):
+        return bool(x)
+    return x

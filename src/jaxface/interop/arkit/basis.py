@@ -1,0 +1,135 @@
+"""The ARKit basis on a subject: the ICT-backed ARKit displacement fields cloned onto the
+subject's face region (:func:`transfer_ict_basis`, :class:`ArkitBasis`, mm)."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ...errors import DataNotFoundError, FitError
+from .ict import default_ict_path, ict_bosphorus_landmarks
+from .names import ARKIT_NAMES, arkit_deltas_from_ict
+
+__all__ = ["ArkitBasis", "transfer_ict_basis"]
+
+
+# ------------------------------------------------------------------------------------------
+# the basis on a subject
+# ------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ArkitBasis:
+    """The ARKit shapes on one skin topology.
+
+    Attributes:
+        deltas: ``(52, V, 3)`` displacement of each ARKit shape at coefficient 1, mm (zero
+            outside ``mask`` and for unavailable shapes).
+        available: ``(52,)`` bool: the shape has a source (False: ``tongueOut``).
+        mask: ``(V,)`` bool vertices the readout uses (the face region).
+        source: where the shapes came from (the ICT file; or a description).
+        info: clone statistics (iterations, seconds, ...).
+    """
+
+    deltas: np.ndarray
+    available: np.ndarray
+    mask: np.ndarray
+    source: str
+    info: dict = field(default_factory=dict)
+
+    names = ARKIT_NAMES
+
+    def motion(self, coefficients) -> np.ndarray:
+        """``(V, 3)`` mm displacement of a coefficient vector ``(52,)`` or dict."""
+        c = _as_vector(coefficients)
+        return np.einsum("k,kvd->vd", c, self.deltas)
+
+
+def _as_vector(c) -> np.ndarray:
+    if isinstance(c, dict):
+        unknown = sorted(set(c) - set(ARKIT_NAMES))
+        if unknown:
+            raise FitError(f"unknown ARKit names {unknown}; the names are {list(ARKIT_NAMES)}.")
+        return np.array([float(c.get(n, 0.0)) for n in ARKIT_NAMES])
+    v = np.asarray(c, np.float64).reshape(-1)
+    if v.shape != (len(ARKIT_NAMES),):
+        raise FitError(f"expected {len(ARKIT_NAMES)} ARKit coefficients, got {v.shape}.")
+    return v
+
+
+def transfer_ict_basis(
+    target_vertices,
+    target_triangles,
+    target_landmarks,
+    target_mask=None,
+    *,
+    ict_path=None,
+    ict_landmark_ids=None,
+    max_iterations: int = 3,
+    transfer: str = "affine",
+) -> ArkitBasis:
+    """Clone the ICT ARKit shapes onto a subject's skin (:func:`jaxface.clone.clone_motion`).
+
+    Args:
+        target_vertices: ``(V, 3)`` the subject's neutral skin, mm; target_triangles:
+            ``(F, 3)``.
+        target_landmarks: its Bosphorus landmarks (Landmarks or dict, mm).
+        target_mask: ``(V,)`` bool face region (the clone target and the readout's vertices;
+            default all).
+        ict_path: ``ict_face.npz`` (default :func:`default_ict_path`).
+        ict_landmark_ids: see :func:`ict_bosphorus_landmarks`.
+        max_iterations: refinement iterations of the cloning (each adds 125 pairs); the
+            landmarks and the eye/mouth contours already place the ICT face on the subject.
+
+    Raises:
+        DataNotFoundError: no ICT file.
+    """
+    from ...anatomy.ict import FACE_VERTEX_COUNT, load_ict_face
+    from ...clone import clone_motion
+    from ...mesh import TriMesh
+
+    p = Path(ict_path) if ict_path is not None else default_ict_path()
+    if p is None or not p.is_file():
+        raise DataNotFoundError(
+            f"the ICT-FaceKit file is needed for the ARKit shapes and was not found "
+            f"({p if p is not None else 'set JAXFACE_ICT to ict_face.npz, or JAXFACE_SHARED'})."
+        )
+    t0 = time.perf_counter()
+    ict = load_ict_face(p)
+    slm = ict_bosphorus_landmarks(p, ict_landmark_ids)
+    deltas, avail = arkit_deltas_from_ict(
+        ict.expression_names, ict.expression_deltas[:, :FACE_VERTEX_COUNT]
+    )
+    V = np.asarray(target_vertices, np.float64)
+    T = np.asarray(target_triangles, np.int64)
+    mask = np.ones(len(V), bool) if target_mask is None else np.asarray(target_mask, bool)
+    if mask.shape != (len(V),):
+        raise FitError(f"target_mask must be ({len(V)},) bool, got {mask.shape}.")
+    tri_mask = mask[T].all(axis=1)
+    sub, old = TriMesh(V, T, validate=False).submesh(tri_mask)
+    ids = np.flatnonzero(avail)
+    res = clone_motion(
+        ict.skin,
+        sub,
+        slm,
+        target_landmarks,
+        source_deltas=deltas[ids],
+        max_iterations=max_iterations,
+        transfer=transfer,
+    )
+    full = np.zeros((len(ARKIT_NAMES), len(V), 3))
+    full[np.ix_(ids, old)] = res.deltas
+    m = np.zeros(len(V), bool)
+    m[old] = True
+    if not np.all(np.isfinite(full)):
+        raise FitError("the cloned ARKit shapes hold NaN/inf; check the subject's landmarks.")
+    info = {
+        "method": "jaxface.clone.clone_motion of the ICT-FaceKit shapes (landmarks, contours, "
+        f"{max_iterations} refinement iterations)",
+        "landmarks": list(res.fit.landmark_names),
+        "contours": list(res.fit.contours_used),
+        "iterations": int(res.fit.iterations),
+        "seconds": time.perf_counter() - t0,
+    }
+    return ArkitBasis(full, avail, m, str(p), info)

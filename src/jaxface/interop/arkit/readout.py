@@ -1,0 +1,243 @@
+"""The ARKit readout: bounded, L1-weighted, robustly re-weighted least squares of the
+coefficients (:func:`box_qp`, :func:`tukey_weights`, :func:`solve_arkit`,
+:func:`fit_arkit_to_scan`, :class:`ArkitSolution`) and the landmark motion of a scan (mm)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import lsq_linear
+
+from ...errors import FitError, LandmarkError
+from .basis import ArkitBasis
+from .names import ARKIT_NAMES
+
+__all__ = [
+    "ArkitSolution",
+    "box_qp",
+    "tukey_weights",
+    "solve_arkit",
+    "fit_arkit_to_scan",
+    "landmark_motion",
+]
+
+
+# ------------------------------------------------------------------------------------------
+# the readout
+# ------------------------------------------------------------------------------------------
+def box_qp(G, g, lo: float = 0.0, hi: float = 1.0) -> np.ndarray:
+    """``argmin_c 0.5 c^T G c - g^T c`` over ``lo <= c <= hi`` (exact, bounded-variable least
+    squares on ``R`` with ``R^T R = G + eps I``, ``eps = 1e-10 * trace(G) / n``).
+
+    Args:
+        G: ``(n, n)`` symmetric positive semi-definite; g: ``(n,)``.
+    """
+    G = np.asarray(G, np.float64)
+    g = np.asarray(g, np.float64)
+    n = len(g)
+    eps = 1e-10 * max(float(np.trace(G)) / max(n, 1), 1e-300)
+    R = np.linalg.cholesky(G + eps * np.eye(n)).T  # upper: R^T R = G
+    b = np.linalg.solve(R.T, g)
+    res = lsq_linear(R, b, bounds=(lo, hi), method="bvls", tol=1e-12)
+    return np.clip(np.asarray(res.x, np.float64), lo, hi)
+
+
+def tukey_weights(r, floor: float) -> np.ndarray:
+    """Tukey biweight of residual magnitudes ``r`` (mm) at ``max(4.685 * 1.4826 * MAD,
+    floor)`` (the fit's robust weights, :mod:`jaxface.fit.solve`); all ones if every weight
+    would vanish."""
+    r = np.abs(np.asarray(r, np.float64))
+    mad = float(np.median(np.abs(r - np.median(r)))) if r.size else 0.0
+    c = max(4.685 * 1.4826 * mad, float(floor))
+    u = r / c
+    w = np.where(u < 1.0, (1.0 - u * u) ** 2, 0.0)
+    return w if w.sum() > 0 else np.ones_like(r)
+
+
+@dataclass(frozen=True)
+class ArkitSolution:
+    """ARKit coefficients read from a motion.
+
+    Attributes:
+        coefficients: ARKit name -> coefficient in [0, 1] (all 52; unavailable ones 0).
+        contribution_mm: name -> RMS over the readout's vertices of that shape's motion at its
+            coefficient, mm.
+        residual_mm: RMS (robust-weighted) of the motion the coefficients leave unexplained,
+            mm; motion_rms_mm: the same of the motion itself.
+        unavailable: names without a source shape (reported as 0).
+        iterations: robust re-weighting passes.
+    """
+
+    coefficients: dict
+    contribution_mm: dict
+    residual_mm: float
+    motion_rms_mm: float
+    unavailable: tuple[str, ...]
+    iterations: int
+
+    def strongest(self, n: int = 5) -> list[tuple[str, float]]:
+        """The ``n`` largest coefficients, largest first."""
+        return sorted(self.coefficients.items(), key=lambda kv: -kv[1])[:n]
+
+    def to_dict(self) -> dict:
+        return {
+            "contribution_mm": {k: float(v) for k, v in self.contribution_mm.items()},
+            "residual_mm": float(self.residual_mm),
+            "motion_rms_mm": float(self.motion_rms_mm),
+            "unavailable": list(self.unavailable),
+            "robust_iterations": int(self.iterations),
+        }
+
+
+def _solution(basis: ArkitBasis, c_av: np.ndarray, ids, res_mm, mot_mm, it) -> ArkitSolution:
+    c = np.zeros(len(ARKIT_NAMES))
+    c[ids] = c_av
+    m = basis.mask
+    contrib = np.sqrt(np.mean(np.sum((basis.deltas[:, m] * c[:, None, None]) ** 2, -1), -1))
+    return ArkitSolution(
+        coefficients={n: float(v) for n, v in zip(ARKIT_NAMES, c)},
+        contribution_mm={n: float(v) for n, v in zip(ARKIT_NAMES, contrib)},
+        residual_mm=float(res_mm),
+        motion_rms_mm=float(mot_mm),
+        unavailable=tuple(n for n, a in zip(ARKIT_NAMES, basis.available) if not a),
+        iterations=it,
+    )
+
+
+def solve_arkit(
+    basis: ArkitBasis,
+    motion,
+    *,
+    l1: float = 0.01,
+    robust: bool = True,
+    robust_floor_mm: float = 1.5,
+    iterations: int = 4,
+) -> ArkitSolution:
+    """ARKit coefficients of a skin motion (e.g. fitted skin minus rest, same topology).
+
+    Minimises ``sum_i w_i |B_i c - d_i|^2 / sum_i w_i + l1 * sum_k c_k`` over ``0 <= c <= 1``
+    on the basis's vertices ``i`` (mask), with Tukey weights ``w_i`` of ``|B_i c - d_i|``
+    re-estimated ``iterations`` times (``robust=False``: ``w = 1``, one solve).
+
+    Args:
+        motion: ``(V, 3)`` mm; l1: mm^2 per unit coefficient (sparsity).
+
+    Raises:
+        FitError: shape mismatch or non-finite motion.
+    """
+    d = np.asarray(motion, np.float64)
+    if d.shape != basis.deltas.shape[1:]:
+        raise FitError(f"motion must be {basis.deltas.shape[1:]} (mm), got {d.shape}.")
+    if not np.all(np.isfinite(d[basis.mask])):
+        raise FitError("the motion holds NaN/inf on the face region.")
+    ids = np.flatnonzero(basis.available)
+    B = basis.deltas[ids][:, basis.mask].reshape(len(ids), -1).T  # (3P, K)
+    y = d[basis.mask].reshape(-1)
+    P = int(basis.mask.sum())
+    w = np.ones(P)
+    c = np.zeros(len(ids))
+    n_it = iterations if robust else 1
+    for _ in range(n_it):
+        w3 = np.repeat(w / w.sum(), 3)
+        Bw = B * w3[:, None]
+        c = box_qp(B.T @ Bw, Bw.T @ y - 0.5 * l1)
+        r = np.linalg.norm((B @ c - y).reshape(P, 3), axis=1)
+        if robust:
+            w = tukey_weights(r, robust_floor_mm)
+    r = np.linalg.norm((B @ c - y).reshape(P, 3), axis=1)
+    wn = w / w.sum()
+    res = float(np.sqrt(np.sum(wn * r**2)))
+    mot = float(np.sqrt(np.mean(np.sum(d[basis.mask] ** 2, -1))))
+    return _solution(basis, c, ids, res, mot, n_it)
+
+
+def fit_arkit_to_scan(
+    basis: ArkitBasis,
+    rest_vertices,
+    triangles,
+    scan_vertices,
+    scan_triangles,
+    *,
+    landmarks=None,
+    landmark_weight: float = 1.0,
+    l1: float = 0.01,
+    robust_floor_mm: float = 1.5,
+    max_distance_mm: float = 10.0,
+    iterations: int = 6,
+) -> ArkitSolution:
+    """ARKit coefficients straight from a scan (no rig): point-to-plane ICP of
+    ``rest + sum_k c_k B_k`` to the scan surface (both in the same frame, mm).
+
+    Each pass takes the closest scan point ``p_i`` and scan normal ``n_i`` of every basis
+    vertex ``x_i(c)`` and solves ``min sum_i w_i (n_i . (rest_i + B_i c - p_i))^2 / sum w +
+    landmark_weight * mean_l |B_l c - m_l|^2 + l1 sum c`` on ``[0, 1]`` with Tukey weights;
+    matches on the scan's border or farther than ``max_distance_mm`` are rejected. The
+    point-to-plane term leaves motion along the skin (a brow sliding up) free; the landmark
+    term pins it.
+
+    Args:
+        landmarks: None, or ``(tri (L,), bary (L, 3), motion (L, 3) mm)``: landmarks attached
+            to the rest skin's triangles and their motion in the scan (e.g. aligned
+            expression landmark minus neutral landmark).
+
+    Returns:
+        :class:`ArkitSolution` (``motion_rms_mm``: RMS of the recovered motion).
+    """
+    from ...fit.metrics import SurfaceIndex
+
+    X0 = np.asarray(rest_vertices, np.float64)
+    if X0.shape != basis.deltas.shape[1:]:
+        raise FitError(f"rest_vertices must be {basis.deltas.shape[1:]}, got {X0.shape}.")
+    index = SurfaceIndex(scan_vertices, scan_triangles)
+    ids = np.flatnonzero(basis.available)
+    m = basis.mask
+    Bm = basis.deltas[ids][:, m]  # (K, P, 3)
+    c = np.zeros(len(ids))
+    res = 0.0
+    GL = np.zeros((len(ids), len(ids)))
+    gL = np.zeros(len(ids))
+    if landmarks is not None:
+        ltri, lbary, lmot = (np.asarray(a) for a in landmarks)
+        corners = np.asarray(triangles, np.int64)[np.asarray(ltri, np.int64)]  # (L, 3)
+        BL = np.einsum("lj,kljd->kld", lbary, basis.deltas[ids][:, corners]).reshape(len(ids), -1).T
+        ml = np.asarray(lmot, np.float64).reshape(-1)
+        if not np.all(np.isfinite(ml)):
+            raise FitError("landmark motion holds NaN/inf.")
+        s_l = float(landmark_weight) / max(len(ml) // 3, 1)
+        GL = s_l * BL.T @ BL
+        gL = s_l * BL.T @ ml
+    for _ in range(iterations):
+        x = X0[m] + np.einsum("k,kpd->pd", c, Bm)
+        cp = index.query(x, max_distance=2 * max_distance_mm)
+        n = cp.normals
+        ok = ~cp.on_boundary & (cp.distances <= max_distance_mm)
+        if not ok.any():
+            raise FitError("no basis vertex found the scan within max_distance_mm.")
+        A = np.einsum("pd,kpd->pk", n, Bm)  # (P, K)
+        b = np.einsum("pd,pd->p", n, cp.points - X0[m])
+        r = np.abs(A @ c - b)
+        w = np.where(ok, tukey_weights(np.where(ok, r, 0.0), robust_floor_mm), 0.0)
+        if w.sum() <= 0:
+            w = ok.astype(np.float64)
+        w = w / w.sum()
+        Aw = A * w[:, None]
+        c = box_qp(A.T @ Aw + GL, Aw.T @ b + gL - 0.5 * l1)
+        res = float(np.sqrt(np.sum(w * (A @ c - b) ** 2)))
+    mot = float(np.sqrt(np.mean(np.sum(np.einsum("k,kpd->pd", c, Bm) ** 2, -1))))
+    return _solution(basis, c, ids, res, mot, iterations)
+
+
+def landmark_motion(registration, neutral, scan, transform):
+    """The landmark term of :func:`fit_arkit_to_scan`: the registered landmarks' attachment
+    (``registration.landmark_points``) and their motion ``T(q_scan) - q_neutral`` (mm) for the
+    labels present in both scans; ``transform`` maps the scan into the neutral's frame."""
+    lp = registration.landmark_points
+    qn = dict(zip(neutral.landmarks.names, np.asarray(neutral.landmarks.positions)))
+    qe = dict(zip(scan.landmarks.names, np.asarray(scan.landmarks.positions)))
+    names = list(registration.landmarks.names)
+    keep = [i for i, n in enumerate(names) if n in qn and n in qe]
+    if not keep:
+        raise LandmarkError("no landmark label common to the registration and both scans.")
+    mot = np.stack([transform.apply(qe[names[i]][None])[0] - qn[names[i]] for i in keep])
+    return np.asarray(lp.tri)[keep], np.asarray(lp.bary)[keep], mot
