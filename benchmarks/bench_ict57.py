@@ -6,6 +6,11 @@ Run from the repository root (needs ``ict_face.npz`` and ``truth.json`` of the s
 
     python benchmarks/bench_ict57.py [--identities 0,1,2] [--scan exact|virtual|both]
                                      [--expressions NAME,...] [--batch 8] [--results DIR]
+                                     [--muscle-map PATH] [--tag NAME]
+
+``--muscle-map`` builds the subjects' rigs from another muscle map (e.g. the pursing
+orbicularis oris variant of ``docs/design/anatomy.md``); ``--tag`` names the results file
+(``bench_ict57[_TAG].json``).
 
 For each identity ``k`` (0: the generic ICT face; ``k > 0``: identity weights
 ``w ~ N(0, 1)`` drawn with seed ``k`` over the 10 identity modes) the neutral is the ICT face
@@ -53,7 +58,7 @@ import numpy as np
 from jaxface.closest import SurfaceIndex
 from jaxface.fit.evaluation import ICT_FACE_VERTICES, load_truth, scan_coverage
 from jaxface.fit.options import FitOptions
-from jaxface.fit.pipeline import fit_expressions, prepare_subject
+from jaxface.fit.pipeline import SubjectOptions, fit_expressions, prepare_subject
 from jaxface.io import Scan
 from jaxface.io.scanner import scan_mesh
 from jaxface.landmarks import Landmarks
@@ -107,11 +112,13 @@ def make_scan(v, ict, lm_ids, kind: str, path: str) -> Scan:
         return scan_mesh((face, ict["face_tris"]), 1.0, landmarks=lm, max_angle_deg=80.0, path=path)
 
 
-def run_identity(ict, lm_ids, k: int, kinds, expressions, batch: int, options) -> dict:
+def run_identity(
+    ict, lm_ids, k: int, kinds, expressions, batch: int, options, subject_options=None
+) -> dict:
     base = identity_neutral(ict, k)
     t = time.perf_counter()
     neutral = make_scan(base, ict, lm_ids, "exact", f"ict{k}_neutral")
-    subject = prepare_subject(neutral)
+    subject = prepare_subject(neutral, options=subject_options)
     build_s = time.perf_counter() - t
     print(f"identity {k}: subject built in {build_s:.1f} s", flush=True)
     out = {"identity": k, "build_s": build_s, "kinds": {}}
@@ -180,6 +187,8 @@ def main(argv=None):
     p.add_argument("--expressions", default="", help="comma-separated subset (default: all)")
     p.add_argument("--batch", type=int, default=8)
     p.add_argument("--results", default=str(Path(__file__).parent / "results"))
+    p.add_argument("--muscle-map", default=None, help="muscle-map JSON for the rigs")
+    p.add_argument("--tag", default="", help="results file bench_ict57_TAG.json")
     a = p.parse_args(argv)
     ict = load_ict()
     lm_ids = load_truth().landmark_vertex_ids
@@ -197,11 +206,13 @@ def main(argv=None):
         "excepted_no_skin": list(NO_SKIN),
         "corrective": {k: list(v) for k, v in CORRECTIVE.items()},
         "moving_threshold_mm": MOVING_MM,
+        "muscle_map": a.muscle_map or "default",
         "identities": [],
     }
+    sopt = SubjectOptions(rig_kwargs={"muscle_map": a.muscle_map}) if a.muscle_map else None
     opt = FitOptions()
     for k in ids:
-        res = run_identity(ict, lm_ids, k, kinds, exprs, a.batch, opt)
+        res = run_identity(ict, lm_ids, k, kinds, exprs, a.batch, opt, sopt)
         for kind, blk in res["kinds"].items():
             blk["summary"] = summary(blk["rows"])
             print(f"\nidentity {k}, {kind} surfaces ({blk['fit_s_per_scan']:.1f} s per fit)")
@@ -222,9 +233,10 @@ def main(argv=None):
         results["identities"].append(res)
         out = Path(a.results)
         out.mkdir(parents=True, exist_ok=True)
-        tmp = out / "bench_ict57.json.tmp"
+        name = f"bench_ict57{'_' + a.tag if a.tag else ''}.json"
+        tmp = out / (name + ".tmp")
         tmp.write_text(json.dumps(results, indent=1))
-        tmp.replace(out / "bench_ict57.json")
+        tmp.replace(out / name)
 
 
 if __name__ == "__main__":

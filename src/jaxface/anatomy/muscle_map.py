@@ -81,6 +81,9 @@ class MuscleSpec:
         protrusion: sphincters only: forward motion of the ring (along the face's +z) per mm
             of its radial contraction, dimensionless (the lips leave the dental arch as the
             orbicularis oris purses them; 0: the ring only narrows, thesis sec. 4.3.2).
+        modiolus_drag: sphincters only: how much the ring's own contraction at each mouth
+            corner moves the corner muscles inserted there (0: not at all, the thesis's
+            one-way coupling; 1: the modiolus moves with the ring).
         note: free text.
     """
 
@@ -103,6 +106,7 @@ class MuscleSpec:
     max_contraction: float = 0.3
     angles_deg: dict | None = None
     protrusion: float = 0.0
+    modiolus_drag: float = 0.0
     note: str = ""
 
     @property
@@ -219,6 +223,13 @@ def load_muscle_map(path=None) -> list[MuscleSpec]:
             )
         if prot and kind != "sphincter":
             raise RigError(f"muscle map {p}: {where} protrusion applies to sphincters only.")
+        drag = d.get("modiolus_drag", 0.0)
+        if isinstance(drag, bool) or not isinstance(drag, (int, float)) or not 0.0 <= drag <= 2.0:
+            raise RigError(
+                f"muscle map {p}: {where} modiolus_drag must be a number in [0, 2], got {drag!r}."
+            )
+        if drag and kind != "sphincter":
+            raise RigError(f"muscle map {p}: {where} modiolus_drag applies to sphincters only.")
         grid = tuple(int(x) for x in d.get("grid", (2, 8)))
         if kind not in ("eyelid", "sphincter") and (len(grid) != 2 or min(grid) < 2):
             raise RigError(f"muscle map {p}: {where} grid must be [w >= 2, h >= 2], got {grid}.")
@@ -251,6 +262,7 @@ def load_muscle_map(path=None) -> list[MuscleSpec]:
                 max_contraction=mc,
                 angles_deg=dict(d["angles_deg"]) if "angles_deg" in d else None,
                 protrusion=float(d.get("protrusion", 0.0)),
+                modiolus_drag=float(d.get("modiolus_drag", 0.0)),
                 note=str(d.get("note", "")),
             )
             if spec.name in seen:

@@ -133,13 +133,12 @@ POSITION_STIFFNESS = 0.2  # the same for every kind
 #: mid-point 1.2 mm back (README, Known limits, the lip stretcher; the 20 Bosphorus-style scans'
 #: mean error 0.601 -> 0.594 mm, bs901's lip stretcher 1.88x -> 2.07x better than B0).
 MODIOLUS_GAIN = 1.0
-#: ...and the other way: the orbicularis oris's contraction drags the modiolus, and with it
-#: the insertion ends of the corner muscles (their fibre samples move by the ring's contraction
-#: displacement at that mouth corner, fully at the insertion end, fading linearly to the
-#: origin), times this gain. A pucker draws the corners medially and, with the ring's
-#: protrusion, forward; the corner muscles and the cheek skin bound to them follow, as the
-#: modiolus is one node (1: the node moves with the ring).
-MODIOLUS_DRAG = 1.0
+#: ...and, per sphincter, the other way (the map's ``modiolus_drag``, default 0): the ring's
+#: own contraction drags the modiolus and with it the insertion ends of the corner muscles
+#: (their fibre samples move by ``modiolus_drag`` x the ring's contraction displacement at
+#: that mouth corner, fully at the insertion end, fading linearly to the origin). A pucker then
+#: draws the corners medially and, with the ring's protrusion, forward; the corner muscles and
+#: the cheek skin bound to them follow.
 MODIOLUS_SIGMA_MM = 9.0
 MODIOLUS_MAX_OFFSET_MM = 10.0  # corner muscles: insertion within this of the mouth corner
 STIFFNESS["passive"] = STIFFNESS["sheet"]
@@ -221,14 +220,15 @@ class MuscleSystem(eqx.Module):
             outer); sph_bottom: ``(K, 3, n)``; sph_ctrl: ``(K,)``; sph_cmax: ``(K,)``;
             sph_axes: ``(K, 2, 3)``; sph_ab: ``(K, 2)`` semi-axes, mm; sph_forward: ``(K, 3)``
             unit normal of each ring's plane, toward the face's front; sph_protrusion: ``(K,)``
-            forward mm per mm of radial contraction.
+            forward mm per mm of radial contraction; sph_drag: ``(K,)`` the ring's
+            ``modiolus_drag``.
         mod_w: ``(K, 3, n, 2)`` modiolus weights in [0, 1] of every sphincter ring sample,
             toward the left (0) and the right (1) modiolus; mod_end, mod_last, mod_fw:
             ``(2, J)`` per side the corner-muscle fibres' insertion-end sample (flat index
             into the ``(F * H)`` samples), their action-line end (fibre index) and weight
             (1 / fibres of the muscle; 0 pads): see :data:`MODIOLUS_GAIN`; fib_mod_side:
             ``(F,)`` the modiolus (0 left, 1 right, 2 none) each fibre inserts into, fib_ramp:
-            ``(F, H)`` 0 at its origin to 1 at its insertion end (:data:`MODIOLUS_DRAG`).
+            ``(F, H)`` 0 at its origin to 1 at its insertion end (the sphincters' ``modiolus_drag``).
         groups: the engine's distance and bending groups (all muscles, :mod:`jaxface.pbd`).
         positions: anchors of the bottom particles to their action-line samples (targets set
             every sweep, :func:`sample_targets`); shell: anchors of the top particles to their
@@ -275,6 +275,7 @@ class MuscleSystem(eqx.Module):
     sph_ab: jax.Array
     sph_forward: jax.Array
     sph_protrusion: jax.Array
+    sph_drag: jax.Array
     mod_w: jax.Array
     fib_mod_side: jax.Array
     fib_ramp: jax.Array
@@ -446,6 +447,7 @@ def build_muscle_system(
                     ab=p.semi_axes,
                     fwd=_ring_forward(p.axes),
                     prot=float(p.spec.protrusion),
+                    drag=float(p.spec.modiolus_drag),
                     skin=np.stack([p.insertion_skin, p.origin_skin]),
                 )
             )
@@ -547,6 +549,7 @@ def build_muscle_system(
         sph_ab=np.stack([s["ab"] for s in sph]) if sph else np.zeros((0, 2)),
         sph_forward=np.stack([s["fwd"] for s in sph]) if sph else np.zeros((0, 3)),
         sph_protrusion=np.array([s["prot"] for s in sph], float),
+        sph_drag=np.array([s["drag"] for s in sph], float),
         **mod,
         groups=tuple(groups),
         positions=positions,
@@ -888,20 +891,17 @@ def sample_targets(system: MuscleSystem, G, activations):
     fwd = (system.sph_protrusion.astype(dt) * cs)[:, None] * radius * falloff  # (K, n)
     delta = delta + fwd[..., None] * system.sph_forward.astype(dt)[:, None, :]
     tg_s = (P + delta[:, None]).reshape(-1, 3)
-    # the ring drags the modiolus too: each side's corner-muscle fibres move by the ring's
-    # contraction displacement at that modiolus (the mean over the ring samples weighted by
-    # their modiolus weight), fully at the insertion end and fading linearly to the origin
+    # the ring drags the modiolus too (its modiolus_drag): each side's corner-muscle fibres
+    # move by the ring's contraction displacement at that modiolus (the mean over the ring
+    # samples weighted by their modiolus weight), fully at the insertion end and fading
+    # linearly to the origin
     mw = system.mod_w.astype(dt)[:, 1]  # (K, n, 2): the middle ring
-    dr = jnp.einsum("kns,knd->sd", mw, delta) / jnp.maximum(
+    drag = system.sph_drag.astype(dt)
+    dr = jnp.einsum("kns,k,knd->sd", mw, drag, delta) / jnp.maximum(
         jnp.sum(mw, axis=(0, 1))[:, None], 1e-12
     )  # (2, 3)
     dr = jnp.concatenate([dr, jnp.zeros((1, 3), dt)])  # row 2: fibres off the modiolus
-    s = (
-        s
-        + MODIOLUS_DRAG
-        * system.fib_ramp.astype(dt)[..., None]
-        * dr[system.fib_mod_side][:, None, :]
-    )
+    s = s + system.fib_ramp.astype(dt)[..., None] * dr[system.fib_mod_side][:, None, :]
     tg_f = s.reshape(-1, 3)[system.fib_valid]
     return (
         jnp.concatenate([system.fib_bottom, system.sph_bottom.reshape(-1)]),
