@@ -6,10 +6,11 @@ Run from the repository root (needs ``ict_face.npz`` and ``truth.json`` of the s
 
     python benchmarks/bench_ict57.py [--identities 0,1,2] [--scan exact|virtual|both]
                                      [--expressions NAME,...] [--batch 8] [--results DIR]
-                                     [--muscle-map PATH] [--tag NAME]
+                                     [--muscle-map PATH | --range-variant] [--tag NAME]
 
-``--muscle-map`` builds the subjects' rigs from another muscle map (e.g. the pursing
-orbicularis oris variant of ``docs/design/anatomy.md``); ``--tag`` names the results file
+``--muscle-map`` builds the subjects' rigs from another muscle map, ``--range-variant`` from
+the default map with :data:`jaxface.anatomy.muscle_map.RANGE_EDITS` (the pursing orbicularis
+oris and the longer frontalis of ``docs/design/anatomy.md``); ``--tag`` names the results file
 (``bench_ict57[_TAG].json``).
 
 For each identity ``k`` (0: the generic ICT face; ``k > 0``: identity weights
@@ -55,6 +56,7 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxface.anatomy.muscle_map import RANGE_EDITS, load_muscle_map
 from jaxface.closest import SurfaceIndex
 from jaxface.fit.evaluation import ICT_FACE_VERTICES, load_truth, scan_coverage
 from jaxface.fit.options import FitOptions
@@ -188,6 +190,7 @@ def main(argv=None):
     p.add_argument("--batch", type=int, default=8)
     p.add_argument("--results", default=str(Path(__file__).parent / "results"))
     p.add_argument("--muscle-map", default=None, help="muscle-map JSON for the rigs")
+    p.add_argument("--range-variant", action="store_true", help="the map with RANGE_EDITS")
     p.add_argument("--tag", default="", help="results file bench_ict57_TAG.json")
     a = p.parse_args(argv)
     ict = load_ict()
@@ -206,10 +209,14 @@ def main(argv=None):
         "excepted_no_skin": list(NO_SKIN),
         "corrective": {k: list(v) for k, v in CORRECTIVE.items()},
         "moving_threshold_mm": MOVING_MM,
-        "muscle_map": a.muscle_map or "default",
+        "muscle_map": "range variant" if a.range_variant else (a.muscle_map or "default"),
         "identities": [],
     }
-    sopt = SubjectOptions(rig_kwargs={"muscle_map": a.muscle_map}) if a.muscle_map else None
+    sopt = None
+    if a.range_variant:
+        sopt = SubjectOptions(rig_kwargs={"muscle_map": load_muscle_map(edits=RANGE_EDITS)})
+    elif a.muscle_map:
+        sopt = SubjectOptions(rig_kwargs={"muscle_map": a.muscle_map})
     opt = FitOptions()
     for k in ids:
         res = run_identity(ict, lm_ids, k, kinds, exprs, a.batch, opt, sopt)

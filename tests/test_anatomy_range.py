@@ -1,8 +1,8 @@
-"""The anatomy's expressive range (issue 44), pinned qualitatively on the default head: the
-frontalis lifts the brows by more than 10 mm; with the pursing orbicularis oris (the map's
-``protrusion`` and ``modiolus_drag``, :data:`PURSING`) pursed lips move the mouth corners
-toward the mid-line and forward and the cheeks hollow as the lips protrude, and the
-protrusion is smooth at rest. Units mm."""
+"""The anatomy's expressive range (issue 44), pinned qualitatively on the default head with the
+range variant of the muscle map (:data:`jaxface.anatomy.muscle_map.RANGE_EDITS`, opt-in): the
+frontalis lifts the brows by more than 10 mm, pursed lips move the mouth corners toward the
+mid-line and forward, the cheeks hollow as the lips protrude, and the protrusion is smooth at
+rest. Units mm."""
 
 import json
 from importlib.resources import files
@@ -13,15 +13,12 @@ import numpy as np
 import pytest
 
 from jaxface import facs
-from jaxface.anatomy.muscle_map import load_muscle_map
+from jaxface.anatomy.muscle_map import RANGE_EDITS, load_muscle_map
 from jaxface.anatomy.muscles import moved_skull_points, sample_targets
 from jaxface.anatomy.rig import build_rig, synthesize
 from jaxface.errors import RigError
 from jaxface.head import generic_head
 from jaxface.normals import vertex_normals
-
-#: the pursing ring (docs/design/anatomy.md): not the default yet, it costs the shared fits
-PURSING = {"orbicularis_oris": {"protrusion": 1.2, "modiolus_drag": 1.0, "max_contraction": 0.65}}
 
 
 @pytest.fixture(scope="module")
@@ -30,13 +27,13 @@ def head():
 
 
 @pytest.fixture(scope="module")
-def pursing_rig(head, tmp_path_factory):
-    return build_rig(head, muscle_map=_write_map(tmp_path_factory.mktemp("map"), PURSING))
+def range_rig(head):
+    return build_rig(head, muscle_map=load_muscle_map(edits=RANGE_EDITS))
 
 
 @pytest.fixture(scope="module")
-def rest(default_rig):
-    return np.asarray(synthesize(default_rig, default_rig.activations({})))
+def rest(range_rig):
+    return np.asarray(synthesize(range_rig, range_rig.activations({})))
 
 
 def _aus(rig, aus):
@@ -49,9 +46,9 @@ def _vertex(rest, head, label):
 
 
 @pytest.fixture(scope="module")
-def pucker(pursing_rig, rest):
-    a = pursing_rig.activations({"orbicularis_oris": 1.0})
-    return np.asarray(synthesize(pursing_rig, a)) - rest
+def pucker(range_rig, rest):
+    a = range_rig.activations({"orbicularis_oris": 1.0})
+    return np.asarray(synthesize(range_rig, a)) - rest
 
 
 def test_pucker_moves_the_corners_medially_and_forward(head, rest, pucker):
@@ -65,8 +62,8 @@ def test_pucker_moves_the_corners_medially_and_forward(head, rest, pucker):
     np.testing.assert_allclose(dl * [-1, 1, 1], dr, atol=0.3)
 
 
-def test_the_cheeks_hollow_when_the_lips_protrude(pursing_rig, head, rest, pucker):
-    n = np.asarray(vertex_normals(rest, np.asarray(pursing_rig.triangles)))
+def test_the_cheeks_hollow_when_the_lips_protrude(range_rig, head, rest, pucker):
+    n = np.asarray(vertex_normals(rest, np.asarray(range_rig.triangles)))
     for label, side in (("Left mouth corner", 1.0), ("Right mouth corner", -1.0)):
         c = np.asarray(head.landmarks[label])
         dx = side * (rest[:, 0] - c[0])
@@ -79,8 +76,8 @@ def test_the_cheeks_hollow_when_the_lips_protrude(pursing_rig, head, rest, pucke
         assert np.mean(inward > 0) > 0.75
 
 
-def test_the_frontalis_lifts_the_brows_more_than_10_mm(default_rig, head, rest):
-    d = _aus(default_rig, {"AU1": 1.0, "AU2": 1.0}) - rest
+def test_the_frontalis_lifts_the_brows_more_than_10_mm(range_rig, head, rest):
+    d = _aus(range_rig, {"AU1": 1.0, "AU2": 1.0}) - rest
     for side in ("left", "right"):
         rise = {
             part: d[_vertex(rest, head, f"{part} {side} eyebrow"), 1]
@@ -90,18 +87,18 @@ def test_the_frontalis_lifts_the_brows_more_than_10_mm(default_rig, head, rest):
         assert min(rise.values()) >= 7.0, rise
 
 
-def test_protrusion_is_smooth_at_rest_and_moves_the_ring_forward(pursing_rig):
+def test_protrusion_is_smooth_at_rest_and_moves_the_ring_forward(range_rig):
     """The ring's targets (:func:`~jaxface.anatomy.muscles.sample_targets` on the rest
     support): the forward term scales the radial contraction's length, which is linear in the
     activation, so the derivative at activation 0 is finite and matches a one-sided finite
     difference; at the ring's lateral ends (the mouth corners, where the radial motion is
     medial) the forward motion is ``protrusion`` times the in-plane motion."""
-    system = pursing_rig.muscles
-    spec = {s.name: s for s in pursing_rig.info.specs}["orbicularis_oris"]
+    system = range_rig.muscles
+    spec = {s.name: s for s in range_rig.info.specs}["orbicularis_oris"]
     skull = moved_skull_points(system, jnp.eye(3), jnp.zeros(3))
     G = system.support(skull, system.rest)
-    i = pursing_rig.index("orbicularis_oris")
-    a0 = pursing_rig.activations({})
+    i = range_rig.index("orbicularis_oris")
+    a0 = range_rig.activations({})
     e = jnp.zeros_like(a0).at[i].set(1.0)
 
     def f(t):
@@ -135,7 +132,7 @@ def _write_map(tmp_path, edit):
 
 
 def test_muscle_map_checks_protrusion(tmp_path):
-    specs = {s.name: s for s in load_muscle_map(_write_map(tmp_path, PURSING))}
+    specs = {s.name: s for s in load_muscle_map(edits=RANGE_EDITS)}
     assert specs["orbicularis_oris"].protrusion == 1.2
     assert specs["orbicularis_oris"].modiolus_drag == 1.0
     default = {s.name: s for s in load_muscle_map()}
@@ -149,3 +146,5 @@ def test_muscle_map_checks_protrusion(tmp_path):
             load_muscle_map(_write_map(tmp_path, {"orbicularis_oris": {"modiolus_drag": bad}}))
     with pytest.raises(RigError, match="sphincters only"):
         load_muscle_map(_write_map(tmp_path, {"risorius": {"modiolus_drag": 1.0}}))
+    with pytest.raises(RigError, match="not a muscle of the map"):
+        load_muscle_map(edits={"orbicularis_orbis": {"protrusion": 1.0}})

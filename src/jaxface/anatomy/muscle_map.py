@@ -43,6 +43,7 @@ __all__ = [
     "ActionLine",
     "SurfaceRegistry",
     "load_muscle_map",
+    "RANGE_EDITS",
     "check_sphincter_rings",
     "default_muscle_map_path",
     "place_muscles",
@@ -146,12 +147,37 @@ def _check_point(pt, where: str, path) -> None:
         raise RigError(f"muscle map {path}: {where} offset must be 3 finite numbers, got {off!r}.")
 
 
-def load_muscle_map(path=None) -> list[MuscleSpec]:
+#: The expressive-range variant of the default map (issue 44; opt-in, see
+#: ``docs/design/anatomy.md``): the orbicularis oris purses and protrudes the lips and drags
+#: the modiolus, and the frontalis inserts between the orbicularis oculi fibres, 8 mm below the
+#: brow line, and contracts further. ``load_muscle_map(edits=RANGE_EDITS)``.
+RANGE_EDITS: dict[str, dict] = {
+    "orbicularis_oris": {"protrusion": 1.2, "modiolus_drag": 1.0, "max_contraction": 0.65},
+    "frontalis_medial": {
+        "max_contraction": 0.6,
+        "insertion": {
+            "at": {"Inner left eyebrow": 0.7, "Middle left eyebrow": 0.3},
+            "offset": [0, -8, 0],
+        },
+    },
+    "frontalis_lateral": {
+        "max_contraction": 0.6,
+        "insertion": {
+            "at": {"Middle left eyebrow": 0.3, "Outer left eyebrow": 0.7},
+            "offset": [0, -8, 0],
+        },
+    },
+}
+
+
+def load_muscle_map(path=None, *, edits: dict | None = None) -> list[MuscleSpec]:
     """Read a muscle map.
 
     Args:
         path: a JSON file in the format of ``jaxface/data/muscle_map.json`` (its
             ``description`` documents the fields); the packaged default map when None.
+        edits: ``{muscle name in the file: {field: value}}`` applied to the entries before
+            they are checked (e.g. :data:`RANGE_EDITS`).
 
     Returns:
         the expanded specs (bilateral muscles as separate ``_L``/``_R`` entries), sorted by
@@ -170,6 +196,15 @@ def load_muscle_map(path=None) -> list[MuscleSpec]:
         raise RigError(f"muscle map {p} is not valid JSON: {e}.") from None
     if not isinstance(data, dict) or not isinstance(data.get("muscles"), list):
         raise RigError(f"muscle map {p} must be a JSON object with a 'muscles' list.")
+    for name, fields in (edits or {}).items():
+        hits = [m for m in data["muscles"] if isinstance(m, dict) and m.get("name") == name]
+        if not hits or not isinstance(fields, dict):
+            raise RigError(
+                f"muscle map {p}: edits name {name!r}, which is not a muscle of the map, or "
+                "its fields are not a dict."
+            )
+        for m in hits:
+            m.update(fields)
     defaults = data.get("defaults", {})
     out: list[MuscleSpec] = []
     seen = set()
