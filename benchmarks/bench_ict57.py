@@ -114,6 +114,60 @@ def make_scan(v, ict, lm_ids, kind: str, path: str) -> Scan:
         return scan_mesh((face, ict["face_tris"]), 1.0, landmarks=lm, max_angle_deg=80.0, path=path)
 
 
+#: The FACS action units each ICT-FaceKit (ARKit-named) shape codes, by the shapes' published
+#: descriptions: a tuple of groups, each a tuple of alternatives (``jawOpen`` is AU26 or, at its
+#: full 42 mm, AU27; ``mouthClose`` is fitted over ``jawOpen``). Sides are read from the bilateral AU. Shapes with no AU in the model's set
+#: (gaze, ``mouthLeft``/``mouthRight``, ``mouthShrugUpper``) are not coded.
+CODED_AUS: dict[str, tuple[tuple[str, ...], ...]] = {
+    "browDown": (("AU4",),),
+    "browInnerUp": (("AU1",),),
+    "browOuterUp": (("AU2",),),
+    "cheekPuff": (("AU33", "AU34"),),
+    "cheekRaiser": (("AU6",),),
+    "cheekSquint": (("AU6",),),
+    "eyeBlink": (("AU43", "AU45", "AU46"),),
+    "eyeSquint": (("AU7",),),
+    "eyeWide": (("AU5",),),
+    "jawForward": (("AU29",),),
+    "jawLeft": (("AU30",),),
+    "jawRight": (("AU30",),),
+    "jawOpen": (("AU26", "AU27"),),
+    "mouthClose": (("AU26", "AU27"), ("AU23", "AU24")),  # lips closed over the open jaw
+    "mouthDimple": (("AU14",),),
+    "mouthFrown": (("AU15",),),
+    "mouthFunnel": (("AU22",),),
+    "mouthLowerDown": (("AU16",),),
+    "mouthPress": (("AU24",),),
+    "mouthPucker": (("AU18",),),
+    "mouthRollLower": (("AU28",),),
+    "mouthRollUpper": (("AU28",),),
+    "mouthShrugLower": (("AU17",),),
+    "mouthSmile": (("AU12",),),
+    "mouthStretch": (("AU20",),),
+    "mouthUpperUp": (("AU10",),),
+    "noseSneer": (("AU9",),),
+}
+
+
+def coded_aus(expression: str) -> tuple[tuple[str, ...], ...]:
+    """The coded AU groups of an ICT shape (its side suffix dropped); ``()`` when uncoded."""
+    base = expression[:-2] if expression[-2:] in ("_L", "_R") else expression
+    return CODED_AUS.get(base, ())
+
+
+def au_check(values: dict, expression: str) -> dict:
+    """Issue 44's readout checks on one fit's AU values (AU -> intensity, bilateral names).
+
+    ``coded_rank_ok``: every coded group has a member among the top ``len(groups) + 1`` AUs
+    (None when the shape is uncoded); ``n_saturated``: bilateral AUs at >= 0.99."""
+    bil = {a: float(x) for a, x in values.items() if a[-1] not in "LR"}
+    order = [a for a, x in sorted(bil.items(), key=lambda kv: -kv[1]) if x > 0.0]
+    groups = coded_aus(expression)
+    top = set(order[: len(groups) + 1])
+    ok = all(any(a in top for a in g) for g in groups) if groups else None
+    return {"coded_rank_ok": ok, "n_saturated": int(sum(x >= 0.99 for x in bil.values()))}
+
+
 def run_identity(
     ict, lm_ids, k: int, kinds, expressions, batch: int, options, subject_options=None
 ) -> dict:
@@ -163,6 +217,9 @@ def run_identity(
                     "top_aus": [[a, round(float(x), 3)] for a, x in top],
                     "top_aus_sparse": [[a, round(float(x), 3)] for a, x in top_sparse],
                     "n_aus_saturated": int(sum(x >= 0.99 for x in bil.values())),
+                    "coded_aus": [list(g) for g in coded_aus(name)],
+                    "au_check_intensity": au_check(r.au_intensities, name),
+                    "au_check_sparse": au_check(r.au_sparse, name),
                 }
             )
         out["kinds"][kind] = {"fit_s_per_scan": fit_s / max(len(scans), 1), "rows": rows}
@@ -179,6 +236,14 @@ def summary(rows) -> dict:
         "n_within_1mm": int((f <= 1.0).sum()),
         "n_2x_B0": int((ratio >= 2.0).sum()),
         "worse_than_B0": [r["expression"] for r in rows if (r["ratio_B0_over_fit"] or 0) < 1.0],
+        **{
+            f"au_{how}": {
+                "n_coded": sum(r[f"au_check_{how}"]["coded_rank_ok"] is not None for r in rows),
+                "n_coded_rank_ok": sum(bool(r[f"au_check_{how}"]["coded_rank_ok"]) for r in rows),
+                "n_over_2_saturated": sum(r[f"au_check_{how}"]["n_saturated"] > 2 for r in rows),
+            }
+            for how in ("intensity", "sparse")
+        },
     }
 
 
@@ -192,6 +257,14 @@ def main(argv=None):
     p.add_argument("--muscle-map", default=None, help="muscle-map JSON for the rigs")
     p.add_argument("--range-variant", action="store_true", help="the map with RANGE_EDITS")
     p.add_argument("--tag", default="", help="results file bench_ict57_TAG.json")
+    p.add_argument(
+        "--rig-option",
+        action="append",
+        default=[],
+        metavar="NAME=JSON",
+        help="a build_rig option for the rigs, e.g. jaw_pitch_limits_deg=[-4,28] (repeatable)",
+    )
+    p.add_argument("--pitch-knots", type=int, default=None, help="SubjectOptions.pitch_knots")
     a = p.parse_args(argv)
     ict = load_ict()
     lm_ids = load_truth().landmark_vertex_ids
@@ -212,11 +285,23 @@ def main(argv=None):
         "muscle_map": "range variant" if a.range_variant else (a.muscle_map or "default"),
         "identities": [],
     }
-    sopt = None
+    rig_kwargs: dict = {}
+    for item in a.rig_option:
+        name, sep, value = item.partition("=")
+        if not sep:
+            raise SystemExit(f"--rig-option wants NAME=JSON, got {item!r}")
+        v = json.loads(value)
+        rig_kwargs[name.strip()] = tuple(v) if isinstance(v, list) else v
     if a.range_variant:
-        sopt = SubjectOptions(rig_kwargs={"muscle_map": load_muscle_map(edits=RANGE_EDITS)})
+        rig_kwargs["muscle_map"] = load_muscle_map(edits=RANGE_EDITS)
     elif a.muscle_map:
-        sopt = SubjectOptions(rig_kwargs={"muscle_map": a.muscle_map})
+        rig_kwargs["muscle_map"] = a.muscle_map
+    sk: dict = {"rig_kwargs": rig_kwargs} if rig_kwargs else {}
+    if a.pitch_knots is not None:
+        sk["pitch_knots"] = a.pitch_knots
+    sopt = SubjectOptions(**sk) if sk else None
+    results["rig_options"] = {k: v for k, v in rig_kwargs.items() if k != "muscle_map"}
+    results["pitch_knots"] = a.pitch_knots
     opt = FitOptions()
     for k in ids:
         res = run_identity(ict, lm_ids, k, kinds, exprs, a.batch, opt, sopt)
@@ -235,6 +320,15 @@ def main(argv=None):
                 f"mean fit {s['mean_fit_mm']:.3f} mm (B0 {s['mean_B0_mm']:.3f}); "
                 f"{s['n_within_1mm']}/{s['n']} within 1 mm; {s['n_2x_B0']}/{s['n']} at 2x B0; "
                 f"worse than B0: {s['worse_than_B0']}",
+                flush=True,
+            )
+            print(
+                "AU readout, coded AUs within the top (n coded + 1) / > 2 saturated: "
+                + "; ".join(
+                    f"{how} {s['au_' + how]['n_coded_rank_ok']}/{s['au_' + how]['n_coded']}"
+                    f" / {s['au_' + how]['n_over_2_saturated']}"
+                    for how in ("intensity", "sparse")
+                ),
                 flush=True,
             )
         results["identities"].append(res)

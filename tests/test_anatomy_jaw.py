@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from jaxface.anatomy import build_rig
 from jaxface.anatomy.frame import face_frame, mirror_label
 from jaxface.anatomy.jaw import (
     PITCH_LIMITS_DEG,
@@ -16,7 +17,8 @@ from jaxface.anatomy.jaw import (
     rotation_matrix,
     smooth_clamp,
 )
-from jaxface.errors import LandmarkError
+from jaxface.errors import LandmarkError, RigError
+from jaxface.head import generic_head
 from jaxface.landmarks import Landmarks
 
 
@@ -176,3 +178,18 @@ def test_vmap_over_poses(jaw):
     for i in range(3):
         single = one(JawPose(poses.pitch_deg[i], poses.yaw_deg[i], poses.protrusion_mm[i]))
         np.testing.assert_allclose(batch[i], single, atol=1e-12)
+
+
+@pytest.mark.parametrize("limits", [(5.0, 20.0), (-4.0, -1.0), (-4.0, 60.0), (-4.0, float("nan"))])
+def test_build_rig_refuses_impossible_jaw_pitch_limits(limits):
+    with pytest.raises(RigError, match="jaw_pitch_limits_deg"):
+        build_rig(generic_head(), jaw_pitch_limits_deg=limits)
+
+
+def test_full_opening_drops_the_chin_as_far_as_a_wide_open_mouth(jaw):
+    # a wide-open mouth drops the chin 40-50 mm (ICT-FaceKit's jawOpen: 42 mm); the old 18
+    # degree limit stopped at 36 mm on this face (55 mm now), and every fit of jawOpen at it
+    chin = jnp.asarray(synthetic_landmarks()["Chin middle"])
+    R, t = jaw.transform(JawPose(jnp.asarray(90.0)))  # saturates at the opening limit
+    drop = float(jnp.linalg.norm(R @ chin + t - chin))
+    assert 40.0 <= drop <= 60.0, drop

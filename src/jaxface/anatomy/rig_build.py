@@ -63,6 +63,7 @@ def build_rig(
     skin_chebyshev_rho: float | None = None,
     muscle_shell_stiffness: float | None = None,
     fat_volume: float | tuple | None = None,
+    jaw_pitch_limits_deg: tuple[float, float] | None = None,
 ):
     """Build the rig of a face with either backend.
 
@@ -106,6 +107,7 @@ def build_rig(
         skin_chebyshev_rho=skin_chebyshev_rho,
         muscle_shell_stiffness=muscle_shell_stiffness,
         fat_volume=fat_volume,
+        jaw_pitch_limits_deg=jaw_pitch_limits_deg,
     )
     rb = rig_backend(backend)
     return rb.build(skin, landmarks, skull, muscle_map, configure(rb, config, options))
@@ -121,6 +123,12 @@ def _build_pbd(skin, landmarks, skull, muscle_map, config: PBDRigConfig) -> Rig:
     jaw_follow_mm, jaw_membrane = c.jaw_follow_mm, c.jaw_membrane
     skin_chebyshev_rho, muscle_shell_stiffness = c.skin_chebyshev_rho, c.muscle_shell_stiffness
     fat_volume = c.fat_volume
+    plo, phi = (float(x) for x in c.jaw_pitch_limits_deg)
+    if not (np.isfinite([plo, phi]).all() and plo <= 0.0 < phi <= 45.0):
+        raise RigError(
+            f"jaw_pitch_limits_deg must be (closing, opening) degrees with closing <= 0 < "
+            f"opening <= 45; got {c.jaw_pitch_limits_deg}."
+        )
     if not isinstance(skin, TriMesh) and hasattr(skin, "mesh"):
         head = skin
         landmarks = head.landmarks if landmarks is None else landmarks
@@ -204,7 +212,7 @@ def _build_pbd(skin, landmarks, skull, muscle_map, config: PBDRigConfig) -> Rig:
         membrane=membrane,
         fat_volume=fat_volume,
     )
-    jaw = JawModel.from_landmarks(frame)
+    jaw = JawModel.from_landmarks(frame, pitch_limits=(plo, phi))
     info = RigInfo(
         skin=mesh,
         landmarks=landmarks,

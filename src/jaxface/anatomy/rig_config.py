@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from typing import Any, ClassVar
 
 from .interface import RigConfig
+from .jaw import PITCH_LIMITS_DEG
 from .muscles import SHELL_STIFFNESS
 
 __all__ = [
@@ -127,6 +128,9 @@ class PBDRigConfig(RigConfig):
             where they spread (the lips of a widened mouth) it sinks. One value or a
             ``(lower, upper)`` pair blended like ``footprint_mm``; 0 = off; default
             :data:`FAT_VOLUME`.
+        jaw_pitch_limits_deg: ``(closing, opening)`` limits of the jaw's pitch, degrees
+            (:class:`~jaxface.anatomy.jaw.JawModel`; default
+            :data:`~jaxface.anatomy.jaw.PITCH_LIMITS_DEG`).
     """
 
     backend: ClassVar[str] = "pbd"
@@ -145,3 +149,4 @@ class PBDRigConfig(RigConfig):
     skin_chebyshev_rho: float = 0.0
     muscle_shell_stiffness: float = SHELL_STIFFNESS
     fat_volume: float | tuple = FAT_VOLUME
+    jaw_pitch_limits_deg: tuple[float, float] = PITCH_LIMITS_DEG
