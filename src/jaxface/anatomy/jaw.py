@@ -1,7 +1,7 @@
 """The jaw: a rigid mandible (and lower teeth) with pitch, yaw and protrusion (thesis sec. 5.2).
 
 * **pitch** rotates about the axis through the two condyles (MPEG-4 2.13/2.14); positive
-  opens the mouth; default limits -4..28 degrees;
+  opens the mouth; default limits -4..18 degrees (``jaw_pitch_limits_deg``);
 * **yaw** rotates about the axis through the top of the skull (11.4) and the condyle
   midpoint; positive turns the chin toward the subject's left (+x); limits -5..5 degrees;
 * **protrusion** translates along the line from the top of the spine (7.1) to the chin
@@ -47,10 +47,12 @@ __all__ = [
     "rotation_matrix",
 ]
 
-#: Pitch limits, degrees (closing, opening). The mandible of an adult opens about 25-30
+#: Default pitch limits, degrees (closing, opening). An adult mandible opens about 25-30
 #: degrees about the condyles at the widest mouth opening (40-50 mm between the incisors);
-#: ICT-FaceKit's ``jawOpen`` drops the chin 42 mm, about 22 degrees.
-PITCH_LIMITS_DEG = (-4.0, 28.0)
+#: ICT-FaceKit's ``jawOpen`` drops the chin 42 mm, about 22 degrees. The default stops at 18
+#: (a wider range fits the Bosphorus-style scans slightly worse, ``docs/design/anatomy.md``);
+#: ``build_rig(..., jaw_pitch_limits_deg=(-4, 28))`` opens the full range.
+PITCH_LIMITS_DEG = (-4.0, 18.0)
 YAW_LIMITS_DEG = (-5.0, 5.0)
 PROTRUSION_LIMITS_MM = (-2.0, 6.0)
 
@@ -79,7 +81,7 @@ class JawPose(eqx.Module):
     """The jaw state, a tiny JAX pytree.
 
     Attributes:
-        pitch_deg: ``()`` degrees, opening positive (default limits -4..28).
+        pitch_deg: ``()`` degrees, opening positive (default limits -4..18).
         yaw_deg: ``()`` degrees, chin toward the subject's left (+x) positive (limits -5..5).
         protrusion_mm: ``()`` mm, forward (+z) positive (limits -2..6).
 

@@ -369,7 +369,7 @@ def register(app: typer.Typer) -> None:
             4, "--levels", min=1, help="Activation knots of the rig's reduced model."
         ),
         pitch_knots: int = typer.Option(
-            16, "--pitch-knots", min=3, help="Jaw pitch knots of the reduced model."
+            12, "--pitch-knots", min=3, help="Jaw pitch knots of the reduced model."
         ),
         batch_size: int | None = typer.Option(  # noqa: UP007
             None,

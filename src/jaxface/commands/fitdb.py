@@ -174,7 +174,7 @@ def register(app: typer.Typer) -> None:
             0.02, "--au-sparse-weight", min=0.0, help="As jaxface fit."
         ),
         levels: int = typer.Option(4, "--levels", min=1, help="As jaxface fit."),
-        pitch_knots: int = typer.Option(16, "--pitch-knots", min=3, help="As jaxface fit."),
+        pitch_knots: int = typer.Option(12, "--pitch-knots", min=3, help="As jaxface fit."),
         batch_size: int | None = typer.Option(  # noqa: UP007
             None, "--batch-size", min=1, help="As jaxface fit (default: a subject's scans)."
         ),

@@ -254,7 +254,7 @@ def register(app: typer.Typer) -> None:
             help="Muscle control with activation in [0, 1], e.g. zygomaticus_major_L=0.6 (repeat).",
         ),
         jaw_pitch: float = typer.Option(
-            0.0, "--jaw-pitch", help="Jaw opening, degrees (default limits -4..28)."
+            0.0, "--jaw-pitch", help="Jaw opening, degrees (default limits -4..18)."
         ),
         jaw_yaw: float = typer.Option(
             0.0, "--jaw-yaw", help="Jaw yaw toward the subject's left, degrees (-5..5)."

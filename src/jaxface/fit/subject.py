@@ -39,7 +39,8 @@ class SubjectOptions:
         backend: ``"pbd"`` or ``"ltw"``.
         levels: activation knots of the reduced model (above 0).
         pitch_knots: jaw pitch knots of the reduced model, evenly spaced over the jaw's pitch
-            limits (16 over the default 32 degrees: about 2.1 degrees apart).
+            limits (12 over the default 22 degrees: about 2.2 degrees apart; raise it with a
+            wider ``jaw_pitch_limits_deg`` to keep the spacing).
         register: :class:`jaxface.fit.register.RegisterOptions` (None = defaults).
         rig_kwargs: extra keyword arguments of :func:`jaxface.anatomy.rig.build_rig`
             (e.g. ``muscle_iterations``); PBD backend only.
@@ -50,7 +51,7 @@ class SubjectOptions:
 
     backend: str = "pbd"
     levels: int = 4
-    pitch_knots: int = 16
+    pitch_knots: int = 12
     register: Any = None
     rig_kwargs: dict = field(default_factory=dict)
     chunk: int = 8
