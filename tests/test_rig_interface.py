@@ -8,6 +8,7 @@ the fewest sweeps / relaxation steps, and each synthesis compiles once."""
 import dataclasses
 import inspect
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -15,7 +16,8 @@ import pytest
 from jaxface.anatomy.interface import FaceRig, RigConfig, configure, rig_backend
 from jaxface.anatomy.jaw import JawPose
 from jaxface.anatomy.muscles import SHELL_STIFFNESS
-from jaxface.anatomy.rig import Rig, build_rig, synthesize
+from jaxface.anatomy.rig import Rig, RigInfo, build_rig, synthesize
+from jaxface.anatomy.rig_common import BuildInfo, RigBase
 from jaxface.anatomy.rig_config import (
     FAT_VOLUME,
     FOOTPRINT_CLUSTER_MM,
@@ -25,7 +27,7 @@ from jaxface.anatomy.rig_config import (
 )
 from jaxface.errors import RigError, RigOptionError
 from jaxface.head import generic_head
-from jaxface.ltw.rig import LTWRig, LTWRigConfig, build_ltw_rig, synthesize_ltw
+from jaxface.ltw.rig import LTWInfo, LTWRig, LTWRigConfig, build_ltw_rig, synthesize_ltw
 
 
 @pytest.fixture(scope="module")
@@ -64,6 +66,48 @@ def test_both_backends_are_face_rigs_with_the_same_controls(face, pbd_rig, ltw_r
     # what is not a rig is not taken for one
     assert not isinstance(skin, FaceRig)
     assert not isinstance(pbd_rig.info, FaceRig)
+
+
+def test_both_backends_share_the_control_accessors_and_checks(pbd_rig, ltw_rig):
+    names = pbd_rig.muscle_names
+    for rig in (pbd_rig, ltw_rig):
+        assert issubclass(type(rig), RigBase) and isinstance(rig.info, BuildInfo)
+        # the activation vector, against one laid out by hand from muscle_names
+        want = np.zeros(len(names))
+        want[names.index("zygomaticus_major_L")] = 0.25  # the keyword wins over the dict
+        want[names.index(names[-1])] = 1.0
+        got = rig.activations({"zygomaticus_major_L": 0.5, names[-1]: 1}, zygomaticus_major_L=0.25)
+        np.testing.assert_array_equal(got, want)
+        assert [rig.index(n) for n in names] == list(range(len(names)))
+        with pytest.raises(RigError, match="unknown muscle 'nope'.*zygomaticus_major_L"):
+            rig.activations(nope=1.0)
+        # the same input checks, with the same messages, on both backends
+        with pytest.raises(RigError, match=rf"shape \({rig.n_controls},\) ordered as"):
+            rig.synthesize(jnp.zeros(rig.n_controls + 1))
+        with pytest.raises(RigError, match="jaw must be a JawPose, got float"):
+            rig.synthesize(jnp.zeros(rig.n_controls), 4.0)
+
+
+def test_rig_field_layouts_and_build_records(pbd_rig, ltw_rig):
+    # the shared base adds no field: each rig's pytree layout is its own (rigs cross jit/vmap)
+    def layout(rig):
+        return [(f.name, bool(f.metadata.get("static"))) for f in dataclasses.fields(rig)]
+
+    tail = [("muscle_names", True), ("muscle_aus", True), ("info", True)]
+    assert layout(pbd_rig) == [("jaw", False), ("muscles", False), ("skin", False)] + tail
+    lids = ["lid_nodes", "lid_fall", "lid_upper", "lid_side", "lid_pivot", "lid_axis"]
+    ltw_fields = ["model", "jaw", *lids, "lid_angles", "puff_field", "puff_force"]
+    assert layout(ltw_rig) == [(n, False) for n in ltw_fields] + [("n_steps", True)] + tail
+    # build records: compared by identity, so a copy with the same record keeps the jit cache
+    # key and one with an equal but new record does not
+    for rig, cls in ((pbd_rig, RigInfo), (ltw_rig, LTWInfo)):
+        assert type(rig.info) is cls
+        again = cls(**vars(rig.info))
+        assert again != rig.info and rig.info == rig.info and hash(rig.info) == id(rig.info)
+        same = dataclasses.replace(rig)
+        other = dataclasses.replace(rig, info=again)
+        assert jax.tree_util.tree_structure(same) == jax.tree_util.tree_structure(rig)
+        assert jax.tree_util.tree_structure(other) != jax.tree_util.tree_structure(rig)
 
 
 def test_config_and_keywords_reach_the_pbd_rig(pbd_rig):

@@ -7,7 +7,9 @@ registry :func:`jaxface.anatomy.rig.build_rig` dispatches through.
   objects (``info``: skin, landmarks, frame, skull, placed muscles, specs) and a
   quasi-static ``synthesize(activations (M,), jaw, cheek_puff) -> (V, 3)`` mm. The PBD
   :class:`~jaxface.anatomy.rig.Rig` and the layered-tissue
-  :class:`~jaxface.ltw.rig.LTWRig` both satisfy it (``isinstance(rig, FaceRig)``).
+  :class:`~jaxface.ltw.rig.LTWRig` both satisfy it (``isinstance(rig, FaceRig)``); what
+  they share is implemented once in :mod:`jaxface.anatomy.rig_common` (``RigBase``,
+  ``BuildInfo``).
 * :class:`RigConfig`: base of the per-backend option objects
   (:class:`~jaxface.anatomy.rig_config.PBDRigConfig`, :class:`~jaxface.ltw.rig.LTWRigConfig`).
 * :func:`register_backend` / :func:`rig_backend`: each backend module registers its config

@@ -5,8 +5,6 @@ subject's left +x.
 
 from __future__ import annotations
 
-from typing import cast
-
 import numpy as np
 
 from ..errors import RigError
@@ -15,16 +13,16 @@ from ..validate import checked_build
 from .frame import face_frame
 from .interface import RigConfig, configure, register_backend, rig_backend
 from .jaw import JawModel
-from .muscle_map import MuscleSpec, load_muscle_map, place_muscles, placement_registry
+from .muscle_map import place_muscles, placement_registry
 from .muscles import (
     build_muscle_system,
 )
+from .rig_common import eyelid_regions, muscle_controls
 from .rig_config import JAW_FOLLOW_MM, PBDRigConfig
 from .rig_synth import Rig, RigInfo
 from .skin import (
     bind_skin,
     build_skin_system,
-    eyelid_vertices,
     influence_map,
 )
 from .skull import Skull, estimate_skull
@@ -142,14 +140,7 @@ def _build_pbd(skin, landmarks, skull, muscle_map, config: PBDRigConfig) -> Rig:
         skull = estimate_skull(mesh, landmarks, upper_teeth=upper_teeth, lower_teeth=lower_teeth)
     elif upper_teeth is not None or lower_teeth is not None:
         skull = skull.with_teeth(upper_teeth or skull.upper_teeth, lower_teeth or skull.lower_teeth)
-    if isinstance(muscle_map, (list, tuple)):
-        specs = list(muscle_map)
-        if not all(isinstance(s, MuscleSpec) for s in specs):
-            raise RigError("muscle_map must be a path, None, or a list of MuscleSpec.")
-    else:
-        specs = load_muscle_map(muscle_map)
-    controls = [s for s in specs if s.active]
-    names = tuple(s.name for s in controls)
+    specs, controls, names = muscle_controls(muscle_map)
     ci = {n: i for i, n in enumerate(names)}
     placed = place_muscles(mesh, landmarks, skull, specs)
     registry = placement_registry(skull, placed)
@@ -181,21 +172,7 @@ def _build_pbd(skin, landmarks, skull, muscle_map, config: PBDRigConfig) -> Rig:
     sources = binding.surface != 0
     infl = influence_map(mesh, sources, influence_radius)
     # eyelids: one lid region per eye; angles per control from the map
-    eyelids = []
-    for side in ("left", "right"):
-        angles = np.zeros((len(names), 2))
-        for s in controls:
-            if s.kind == "eyelid" and s.side == side and s.angles_deg:
-                angles[ci[s.name]] = (
-                    float(s.angles_deg.get("upper", 0.0)),
-                    float(s.angles_deg.get("lower", 0.0)),
-                )
-        if not np.any(angles):
-            continue
-        lid_ids, fall, upper = eyelid_vertices(mesh, frame, side, eyelid_threshold)
-        pm = next(p for p in placed if p.kind == "eyelid" and p.spec.side == side)
-        axes = cast(np.ndarray, pm.axes)  # an eyelid's placement always has its axes
-        eyelids.append((lid_ids, fall, upper, len(eyelids), pm.centre, axes[0], angles))
+    eyelids = eyelid_regions(mesh, frame, controls, placed, eyelid_threshold)
     skin_sys = build_skin_system(
         mesh,
         frame,

@@ -12,7 +12,6 @@ from typing import Any
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from .. import pbd
 from ..errors import RigError
@@ -24,6 +23,7 @@ from .muscles import (
     muscle_sweep,
     solve_muscles,
 )
+from .rig_common import BuildInfo, RigBase, check_activations, check_jaw
 from .skin import (
     SkinSystem,
     skin_targets,
@@ -31,38 +31,24 @@ from .skin import (
 )
 
 
-class RigInfo:
-    """Build-time (NumPy) objects of a rig, kept for inspection and pictures; compared by
-    identity so that it can sit in a static field of the :class:`Rig` pytree.
+class RigInfo(BuildInfo):
+    """Build-time (NumPy) objects of a PBD rig (:class:`~jaxface.anatomy.rig_common.BuildInfo`:
+    skin, landmarks, frame, skull, placed, specs; compared by identity), and:
 
     Attributes:
-        skin: the rest skin :class:`TriMesh`; landmarks: the landmarks used; frame: the
-        :class:`~jaxface.anatomy.frame.FaceFrame`; skull: the :class:`Skull`;
-        placed: the :class:`PlacedMuscle` list; specs: the :class:`MuscleSpec` list;
-        binding: the skin :class:`~jaxface.anatomy.skin.Binding`; influence: ``(V,)``.
+        binding: the skin :class:`~jaxface.anatomy.skin.Binding`; influence: ``(V,)`` the
+        influence map; registry: the placement registry of the bones and muscles.
     """
 
-    skin: Any
-    landmarks: Any
-    frame: Any
-    skull: Any
-    placed: Any
-    specs: Any
     binding: Any
     influence: Any
-
-    def __init__(self, **kw):
-        self.__dict__.update(kw)
-
-    def __hash__(self):
-        return id(self)
-
-    def __eq__(self, other):
-        return self is other
+    registry: Any
 
 
-class Rig(eqx.Module):
-    """A face rig (JAX pytree): the model of one face.
+class Rig(RigBase, eqx.Module):
+    """A face rig (JAX pytree): the model of one face, on the PBD backend. The control
+    accessors (``n_controls``, ``triangles``, ``index``, ``activations``) are
+    :class:`~jaxface.anatomy.rig_common.RigBase`'s.
 
     Attributes:
         jaw: :class:`JawModel`.
@@ -83,39 +69,14 @@ class Rig(eqx.Module):
     info: RigInfo = eqx.field(static=True)
 
     @property
-    def n_controls(self) -> int:
-        """Number of activations ``M``."""
-        return len(self.muscle_names)
-
-    @property
     def n_vertices(self) -> int:
+        """Number of skin vertices ``V``."""
         return self.skin.n_vertices
 
     @property
     def rest(self) -> jax.Array:
         """``(V, 3)`` rest skin, mm."""
         return self.skin.rest
-
-    @property
-    def triangles(self) -> np.ndarray:
-        """``(F, 3)`` skin triangles."""
-        return self.info.skin.triangles
-
-    def index(self, name: str) -> int:
-        """Index of a control in the activation vector (RigError listing the names if unknown)."""
-        try:
-            return self.muscle_names.index(name)
-        except ValueError:
-            raise RigError(
-                f"unknown muscle {name!r}; the rig's controls are {list(self.muscle_names)}."
-            ) from None
-
-    def activations(self, values: dict | None = None, **kw) -> jax.Array:
-        """``(M,)`` activation vector from ``{name: value}`` (others 0)."""
-        a = np.zeros(self.n_controls)
-        for k, v in {**(values or {}), **kw}.items():
-            a[self.index(k)] = float(v)
-        return jnp.asarray(a)
 
     def synthesize(self, activations, jaw: JawPose | None = None, cheek_puff=0.0) -> jax.Array:
         """:func:`synthesize` of this rig: ``(V, 3)`` skin, mm (the
@@ -186,22 +147,9 @@ class SynthState(eqx.Module):
     t: jax.Array
 
 
-def _check_acts(rig: Rig, activations):
-    a = jnp.asarray(activations)
-    if a.ndim != 1 or a.shape[0] != rig.n_controls:
-        raise RigError(
-            f"activations must have shape ({rig.n_controls},) ordered as "
-            f"rig.muscle_names; got {tuple(a.shape)}. Use jax.vmap for batches."
-        )
-    if not jnp.issubdtype(a.dtype, jnp.floating):
-        a = a.astype(jnp.result_type(float))
-    return a
-
-
-def _synth(rig: Rig, activations, jaw: JawPose, cheek_puff):
-    a = _check_acts(rig, activations)
-    if not isinstance(jaw, JawPose):
-        raise RigError(f"jaw must be a JawPose, got {type(jaw).__name__}.")
+def _synth(rig: Rig, activations, jaw: JawPose | None, cheek_puff):
+    a = check_activations(rig, activations)
+    jaw = check_jaw(jaw)
     dt = jnp.result_type(a.dtype, jaw.pitch_deg.dtype)
     a = a.astype(dt)
     R, t = rig.jaw.transform(jaw)
@@ -218,7 +166,6 @@ def synthesize_state(
     rig: Rig, activations, jaw: JawPose | None = None, cheek_puff=0.0
 ) -> SynthState:
     """:func:`synthesize`, returning the whole :class:`SynthState`."""
-    jaw = JawPose() if jaw is None else jaw
     return _synth(rig, activations, jaw, cheek_puff)
 
 
@@ -272,10 +219,9 @@ def equilibrium_gap(
         raise RigError(f"sweeps must be two integers (muscle, skin), got {sweeps!r}.") from None
     if m_sweeps < 1 or s_sweeps < 1:
         raise RigError(f"sweeps must be at least 1 each, got {sweeps!r}.")
-    jaw = JawPose() if jaw is None else jaw
     st = _synth(rig, activations, jaw, cheek_puff)
     dt = st.skin.dtype
-    a = _check_acts(rig, activations).astype(dt)
+    a = check_activations(rig, activations).astype(dt)
     plain = rig.with_iterations(muscle_rho=0.0, skin_rho=0.0)
     xm, skull = solve_muscles(plain.muscles, a, st.R, st.t, iterations=m_sweeps, x0=st.muscles)
     tg = skin_targets(plain.skin, plain.muscles.support(skull, xm), a, jnp.asarray(cheek_puff, dt))
@@ -307,7 +253,6 @@ def synthesize(rig: Rig, activations, jaw: JawPose | None = None, cheek_puff=0.0
     """
     if rig.backend != "pbd":  # another backend's rig synthesizes itself (FaceRig)
         return rig.synthesize(activations, jaw, cheek_puff)
-    jaw = JawPose() if jaw is None else jaw
     return _synth(rig, activations, jaw, cheek_puff).skin
 
 

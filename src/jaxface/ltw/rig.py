@@ -41,9 +41,16 @@ import numpy as np
 from ..anatomy.frame import face_frame
 from ..anatomy.geometry import smooth_normals
 from ..anatomy.interface import RigConfig, register_backend
-from ..anatomy.jaw import JawModel, JawPose
-from ..anatomy.muscle_map import MuscleSpec, load_muscle_map, place_muscles
-from ..anatomy.skin import eyelid_vertices
+from ..anatomy.jaw import JawModel
+from ..anatomy.muscle_map import place_muscles
+from ..anatomy.rig_common import (
+    BuildInfo,
+    RigBase,
+    check_activations,
+    check_jaw,
+    eyelid_regions,
+    muscle_controls,
+)
 from ..anatomy.skull import estimate_skull, mandible_mask, tissue_depth
 from ..errors import RigError
 from ..mesh import TriMesh
@@ -64,35 +71,22 @@ __all__ = [
 ]
 
 
-class LTWInfo:
-    """Build-time objects of an LTW rig (NumPy; compared by identity so it can be static).
-
-    Attributes: skin (TriMesh), landmarks, frame, skull, placed (PlacedMuscle list), specs,
-    depth ``(V,)`` mm, mandible ``(V,)`` bool, fibres (list of :class:`Fibre`).
+class LTWInfo(BuildInfo):
+    """Build-time (NumPy) objects of an LTW rig
+    (:class:`~jaxface.anatomy.rig_common.BuildInfo`: skin, landmarks, frame, skull, placed,
+    specs; compared by identity), and: depth ``(V,)`` skin-to-skull depth, mm; mandible
+    ``(V,)`` bool, the skull nodes on the mandible; fibres: the :class:`Fibre` list.
     """
 
-    skin: TriMesh
-    landmarks: Any
-    frame: Any
-    skull: Any
-    placed: Any
-    specs: Any
     depth: Any
     mandible: Any
     fibres: Any
 
-    def __init__(self, **kw):
-        self.__dict__.update(kw)
 
-    def __hash__(self):
-        return id(self)
-
-    def __eq__(self, other):
-        return self is other
-
-
-class LTWRig(eqx.Module):
-    """A face rig on the layered-tissue backend (JAX pytree).
+class LTWRig(RigBase, eqx.Module):
+    """A face rig on the layered-tissue backend (JAX pytree). The control accessors
+    (``n_controls``, ``triangles``, ``index``, ``activations``) are
+    :class:`~jaxface.anatomy.rig_common.RigBase`'s.
 
     Attributes:
         model: :class:`~jaxface.ltw.integrate.LTWModel` (tissue, muscles, params).
@@ -125,11 +119,8 @@ class LTWRig(eqx.Module):
     backend = "ltw"
 
     @property
-    def n_controls(self) -> int:
-        return len(self.muscle_names)
-
-    @property
     def n_vertices(self) -> int:
+        """Number of skin (epidermal) vertices ``V``."""
         return self.model.tissue.n_vertices
 
     @property
@@ -138,27 +129,9 @@ class LTWRig(eqx.Module):
         return self.model.tissue.rest[: self.n_vertices]
 
     @property
-    def triangles(self) -> np.ndarray:
-        return self.info.skin.triangles
-
-    @property
     def params(self) -> LTWParams:
+        """The tissue and muscle constants (:class:`LTWParams`)."""
         return self.model.params
-
-    def index(self, name: str) -> int:
-        try:
-            return self.muscle_names.index(name)
-        except ValueError:
-            raise RigError(
-                f"unknown muscle {name!r}; the rig's controls are {list(self.muscle_names)}."
-            ) from None
-
-    def activations(self, values: dict | None = None, **kw) -> jax.Array:
-        """``(M,)`` activation vector from ``{name: value}`` (others 0)."""
-        a = np.zeros(self.n_controls)
-        for k, v in {**(values or {}), **kw}.items():
-            a[self.index(k)] = float(v)
-        return jnp.asarray(a)
 
     def with_params(self, **kw) -> LTWRig:
         """A copy with some :class:`LTWParams` fields replaced (quasi-static constants kept)."""
@@ -305,13 +278,8 @@ def build_ltw_rig(
         landmarks: the Bosphorus landmarks of the face.
         skull: optional :class:`~jaxface.anatomy.skull.Skull`; estimated when None.
         muscle_map: path of a muscle-map JSON, a list of ``MuscleSpec``, or None (default map).
-        params: :class:`LTWParams` (paper defaults when None).
-        fascia_fraction: fascia depth as a fraction of the skin-to-skull depth.
-        diagonals: shear (cross) springs in the dermal-fatty and muscle layers.
-        n_steps: quasi-static relaxation steps of :func:`synthesize_ltw` (static).
-        eyelid_threshold: normalised geodesic size of the eyelid regions (as the PBD rig).
-        puff_force: cheek-puff force per mm of the cheek-puff field, model units.
-        safety: safety factor on the largest eigenvalue for the relaxation constants.
+        params, fascia_fraction, diagonals, n_steps, eyelid_threshold, puff_force, safety:
+            the options of :class:`LTWRigConfig` (see there, with their units).
 
     Returns:
         :class:`LTWRig`; ``rig.muscle_names`` is the PBD rig's control order for the same map.
@@ -332,41 +300,23 @@ def build_ltw_rig(
         depth = tissue_depth(mesh, frame)
     skull_pts, mand = _skull_columns(mesh, frame, skull, np.asarray(depth, float))
 
-    if isinstance(muscle_map, (list, tuple)):
-        specs = list(muscle_map)
-        if not all(isinstance(s, MuscleSpec) for s in specs):
-            raise RigError("muscle_map must be a path, None, or a list of MuscleSpec.")
-    else:
-        specs = load_muscle_map(muscle_map)
-    controls = [s for s in specs if s.active]
-    names = tuple(s.name for s in controls)
+    specs, controls, names = muscle_controls(muscle_map)
     ci = {n: i for i, n in enumerate(names)}
     placed = place_muscles(mesh, landmarks, skull, specs)
 
     # eyelids (kinematic, as the paper): the same regions and angles as the PBD rig
     V = mesh.n_vertices
     lid_nodes, lid_fall, lid_upper, lid_side, piv, axs, angs = [], [], [], [], [], [], []
-    for side in ("left", "right"):
-        angles = np.zeros((len(names), 2))
-        for s in controls:
-            if s.kind == "eyelid" and s.side == side and s.angles_deg:
-                angles[ci[s.name]] = (
-                    float(s.angles_deg.get("upper", 0.0)),
-                    float(s.angles_deg.get("lower", 0.0)),
-                )
-        if not np.any(angles):
-            continue
-        ids, fall, upper = eyelid_vertices(mesh, frame, side, eyelid_threshold)
-        pm = next(p for p in placed if p.kind == "eyelid" and p.spec.side == side)
-        k = len(piv)
+    for ids, fall, upper, k, pivot, axis, angles in eyelid_regions(
+        mesh, frame, controls, placed, eyelid_threshold
+    ):
         for layer in (0, 1):
             lid_nodes.append(layer * V + ids)
             lid_fall.append(fall)
             lid_upper.append(upper)
             lid_side.append(np.full(len(ids), k))
-        assert pm.axes is not None  # placement gives every eyelid its axes
-        piv.append(np.asarray(pm.centre, float))
-        axs.append(np.asarray(pm.axes[0], float))
+        piv.append(np.asarray(pivot, float))
+        axs.append(np.asarray(axis, float))
         angs.append(angles)
 
     tissue = build_tissue(
@@ -455,24 +405,9 @@ def _puff_field(mesh, frame) -> np.ndarray:
 # ----------------------------------------------------------------------------- synthesis
 
 
-def _check_acts(rig: LTWRig, activations):
-    a = jnp.asarray(activations)
-    if a.ndim != 1 or a.shape[0] != rig.n_controls:
-        raise RigError(
-            f"activations must have shape ({rig.n_controls},) ordered as rig.muscle_names; got "
-            f"{tuple(a.shape)}. Use jax.vmap for batches."
-        )
-    if not jnp.issubdtype(a.dtype, jnp.floating):
-        a = a.astype(jnp.result_type(float))
-    return a
-
-
 def _solve(rig: LTWRig, activations, jaw, cheek_puff, n_steps: int):
-    a = _check_acts(rig, activations)
-    if jaw is None:
-        jaw = JawPose()
-    if not isinstance(jaw, JawPose):
-        raise RigError(f"jaw must be a JawPose, got {type(jaw).__name__}.")
+    a = check_activations(rig, activations)
+    jaw = check_jaw(jaw)
     model = rig.model
     tis = model.tissue
     dt = jnp.result_type(a.dtype, jaw.pitch_deg.dtype, tis.rest.dtype)
@@ -529,9 +464,9 @@ def synthesize_ltw(rig: LTWRig, activations, jaw=None, cheek_puff=0.0):
 def equilibrium_residual(rig: LTWRig, activations, jaw=None, cheek_puff=0.0) -> float:
     """Largest equilibrium residual (mm, see :func:`jaxface.ltw.integrate.residual`) after
     ``rig.n_steps`` relaxation steps: a convergence check of a synthesis."""
-    jaw = JawPose() if jaw is None else jaw
+    jaw = check_jaw(jaw)
     x = synthesize_nodes(rig, activations, jaw, cheek_puff)
-    a = _check_acts(rig, activations).astype(x.dtype)
+    a = check_activations(rig, activations).astype(x.dtype)
     R, t = rig.jaw.transform(jaw)
     R, t = R.astype(x.dtype), t.astype(x.dtype)
     _, ext = _drives(rig, a, R, t, jnp.asarray(cheek_puff, x.dtype))
