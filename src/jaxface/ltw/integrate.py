@@ -396,12 +396,23 @@ def quasi_static_constants(tissue: LTWTissue, params: LTWParams, *, safety: floa
         w = np.linalg.eigvalsh(A.toarray())
         lam_min, lam_max = float(w[0]), float(w[-1])
     else:
+        # a fixed start vector: ARPACK's default is random, and the constants (static fields
+        # of the rig) would differ between two builds of the same face in the 6th digit
+        v0 = np.random.default_rng(0).standard_normal(A.shape[0])
         lam_max = float(
-            spla.eigsh(A, k=1, which="LA", return_eigenvectors=False, tol=1e-3)[0]  # pyright: ignore[reportArgumentType] (SciPy's stub types tol as int)
+            spla.eigsh(A, k=1, which="LA", return_eigenvectors=False, tol=1e-3, v0=v0)[0]  # pyright: ignore[reportArgumentType] (SciPy's stub types tol as int)
         )
         try:
             lam_min = float(
-                spla.eigsh(A, k=1, sigma=0.0, which="LM", return_eigenvectors=False, tol=1e-3)[0]  # pyright: ignore[reportArgumentType] (SciPy's stub types tol as int)
+                spla.eigsh(
+                    A,
+                    k=1,
+                    sigma=0.0,
+                    which="LM",
+                    return_eigenvectors=False,
+                    tol=1e-3,  # pyright: ignore[reportArgumentType] (SciPy's stub types tol as int)
+                    v0=v0,
+                )[0]
             )
         except RuntimeError:  # exactly singular factorisation
             lam_min = 0.0
