@@ -6,18 +6,44 @@
 """
 
 import os
+import shutil
+import tempfile
+from pathlib import Path
 
 os.environ.setdefault("MPLBACKEND", "Agg")
-# the CLI's persistent compilation cache stays off in tests run in-process (no writes to the
-# home folder); tests/test_cli.py turns it on in a temporary folder in a subprocess
-os.environ.setdefault("JAXFACE_COMPILE_CACHE", "off")
+
+# One session cache folder, shared by this process and every process it starts (CLI
+# subprocesses, notebook kernels, Dask workers inherit the environment): JAX's persistent
+# compilation cache, so a program compiled once (the rig's synthesis, the fit's inner solve)
+# is loaded by every later process and by later modules after ``jax.clear_caches()``; and
+# ``$XDG_CACHE_HOME``, so the library's on-disk caches (ARKit inverse maps) are shared too and
+# nothing is written to the home folder. ``JAXFACE_TEST_CACHE=DIR`` keeps the folder between
+# runs (a warm re-run); otherwise it is a fresh temporary folder removed at the end. Tests of
+# the cache itself use their own folders (tests/test_cli.py).
+# (pytest-xdist workers and nested pytest runs inherit the folder of the process that made it,
+# which alone removes it.)
+_INHERITED = os.environ.get("JAXFACE_TEST_CACHE") or os.environ.get("_JAXFACE_SESSION_CACHE")
+SESSION_CACHE = Path(_INHERITED or tempfile.mkdtemp(prefix="jaxface-test-cache-")).resolve()
+SESSION_CACHE.mkdir(parents=True, exist_ok=True)
+_OWN_CACHE = not _INHERITED
+os.environ["_JAXFACE_SESSION_CACHE"] = str(SESSION_CACHE)
+os.environ["JAX_COMPILATION_CACHE_DIR"] = str(SESSION_CACHE / "xla")
+os.environ["JAXFACE_COMPILE_CACHE"] = str(SESSION_CACHE / "xla")
+os.environ["XDG_CACHE_HOME"] = str(SESSION_CACHE / "xdg")
 
 import jax  # noqa: E402
 import pytest  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
+# before the first compilation: JAX reads the folder once, when it first compiles
+jax.config.update("jax_compilation_cache_dir", str(SESSION_CACHE / "xla"))
 
 from jaxface.testing import shared_path  # noqa: E402
+
+
+def pytest_unconfigure(config):
+    if _OWN_CACHE:
+        shutil.rmtree(SESSION_CACHE, ignore_errors=True)
 
 
 @pytest.fixture(scope="module", autouse=True)

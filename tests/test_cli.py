@@ -229,6 +229,8 @@ def test_compile_cache_is_written_where_asked_and_not_when_off(tmp_path):
         JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
         XDG_CACHE_HOME=str(tmp_path / "xdg"),
     )
+    # the cold path, with no folder inherited from the suite's shared cache (tests/conftest.py)
+    env.pop("JAX_COMPILATION_CACHE_DIR", None)
     cache = tmp_path / "cache"
     args = [sys.executable, "-m", "jaxface.cli", "synth", "--au", "AU12=0.5", "-q"]
     on = subprocess.run(
