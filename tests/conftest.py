@@ -14,8 +14,8 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 
 # One session cache folder, shared by this process and every process it starts (CLI
 # subprocesses, notebook kernels, Dask workers inherit the environment): JAX's persistent
-# compilation cache, so a program compiled once (the rig's synthesis, the fit's inner solve)
-# is loaded by every later process and by later modules after ``jax.clear_caches()``; and
+# compilation cache for those processes, so a program one of them compiled (the rig's
+# synthesis, the fit's inner solve) is loaded by every later one; and
 # ``$XDG_CACHE_HOME``, so the library's on-disk caches (ARKit inverse maps) are shared too and
 # nothing is written to the home folder. ``JAXFACE_TEST_CACHE=DIR`` keeps the folder between
 # runs (a warm re-run); otherwise it is a fresh temporary folder removed at the end. Tests of
@@ -27,16 +27,16 @@ SESSION_CACHE = Path(_INHERITED or tempfile.mkdtemp(prefix="jaxface-test-cache-"
 SESSION_CACHE.mkdir(parents=True, exist_ok=True)
 _OWN_CACHE = not _INHERITED
 os.environ["_JAXFACE_SESSION_CACHE"] = str(SESSION_CACHE)
-os.environ["JAX_COMPILATION_CACHE_DIR"] = str(SESSION_CACHE / "xla")
-os.environ["JAXFACE_COMPILE_CACHE"] = str(SESSION_CACHE / "xla")
 os.environ["XDG_CACHE_HOME"] = str(SESSION_CACHE / "xdg")
 
 import jax  # noqa: E402
 import pytest  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
-# before the first compilation: JAX reads the folder once, when it first compiles
-jax.config.update("jax_compilation_cache_dir", str(SESSION_CACHE / "xla"))
+# set after JAX is imported, so only the processes the tests start read them: this process
+# compiles without a persistent cache, as users' in-process code does by default
+os.environ["JAX_COMPILATION_CACHE_DIR"] = str(SESSION_CACHE / "xla")
+os.environ["JAXFACE_COMPILE_CACHE"] = str(SESSION_CACHE / "xla")
 
 from jaxface.testing import shared_path  # noqa: E402
 
