@@ -33,10 +33,11 @@ import jax  # noqa: E402
 import pytest  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
-# set after JAX is imported, so only the processes the tests start read them: this process
-# compiles without a persistent cache, as users' in-process code does by default
+# set after JAX is imported, so only the processes the tests start read it (JAX reads it at
+# import): this process compiles without a persistent cache, as users' in-process code does
+# by default, and the CLI run in-process leaves JAX's configuration alone ("off")
 os.environ["JAX_COMPILATION_CACHE_DIR"] = str(SESSION_CACHE / "xla")
-os.environ["JAXFACE_COMPILE_CACHE"] = str(SESSION_CACHE / "xla")
+os.environ.setdefault("JAXFACE_COMPILE_CACHE", "off")
 
 from jaxface.testing import shared_path  # noqa: E402
 
