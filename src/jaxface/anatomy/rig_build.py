@@ -125,7 +125,8 @@ def _build_pbd(skin, landmarks, skull, muscle_map, config: PBDRigConfig) -> Rig:
     if not (np.isfinite([plo, phi]).all() and plo <= 0.0 < phi <= 45.0):
         raise RigError(
             f"jaw_pitch_limits_deg must be (closing, opening) degrees with closing <= 0 < "
-            f"opening <= 45; got {c.jaw_pitch_limits_deg}."
+            f"opening <= 45; got {c.jaw_pitch_limits_deg}. The default is (-4, 18); (-4, 28) "
+            f"opens the anatomical range."
         )
     if not isinstance(skin, TriMesh) and hasattr(skin, "mesh"):
         head = skin
