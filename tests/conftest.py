@@ -28,6 +28,10 @@ SESSION_CACHE.mkdir(parents=True, exist_ok=True)
 _OWN_CACHE = not _INHERITED
 os.environ["_JAXFACE_SESSION_CACHE"] = str(SESSION_CACHE)
 os.environ["XDG_CACHE_HOME"] = str(SESSION_CACHE / "xdg")
+# prepared subjects (jaxface.fit.subject_cache): the suite builds the same Bosphorus neutral
+# with the same options in several modules, CLI runs, Dask workers and a notebook; the first
+# build is kept and the others load it (a test of the cache itself uses its own folder)
+os.environ["JAXFACE_SUBJECT_CACHE"] = str(SESSION_CACHE / "subjects")
 
 import jax  # noqa: E402
 import pytest  # noqa: E402

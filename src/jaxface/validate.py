@@ -18,6 +18,12 @@
   ``ValueError`` about a failed callback. Ranges are not checked under tracing: a fit keeps
   its controls within its own bounds.
 
+  The run-time check is a host callback, and JAX never writes a program with a host callback
+  to its persistent compilation cache. A caller that checks its inputs on the host itself
+  traces the synthesis inside ``with traced_checks(False):`` (the fit's
+  :class:`~jaxface.fit.forward.ForwardModel` does): the compiled program then has no
+  callback, a non-finite input gives a NaN skin, and the program can be cached on disk.
+
 ``build_rig`` (the skin): a :class:`~jaxface.mesh.TriMesh` (or a head with ``.mesh``) with
 NaN/inf vertices (count and first id), more than
 :data:`jaxface.hygiene.MAX_RIG_VERTICES` vertices, or an unwelded triangle soup (more than
@@ -30,7 +36,10 @@ The speed cost of these checks: ``benchmarks/bench_checks.py``.
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import functools
+from collections.abc import Iterator
 
 import equinox as eqx
 import jax
@@ -48,6 +57,7 @@ __all__ = [
     "check_skin",
     "checked_build",
     "checked_controls",
+    "traced_checks",
 ]
 
 #: Tolerance of the activation/cheek-puff range check (rounding of a value computed in
@@ -57,6 +67,23 @@ RANGE_TOL = 1e-6
 #: A skin where more than this share of the vertices sit on another vertex's position is an
 #: unwelded triangle soup (a welded face has none; the default head and the ICT face: 0).
 MAX_DUPLICATE_SHARE = 0.05
+
+_TRACED_CHECKS: contextvars.ContextVar[bool] = contextvars.ContextVar(
+    "jaxface_traced_checks", default=True
+)
+
+
+@contextlib.contextmanager
+def traced_checks(enabled: bool) -> Iterator[None]:
+    """Turn the run-time check of traced controls (:func:`equinox.error_if`, see the module
+    doc) on or off for what is traced inside the ``with`` block (this thread/context only).
+    Concrete inputs are always checked."""
+    token = _TRACED_CHECKS.set(bool(enabled))
+    try:
+        yield
+    finally:
+        _TRACED_CHECKS.reset(token)
+
 
 _TRACER_ERRORS = (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError)
 
@@ -121,6 +148,8 @@ def check_controls(names, activations, jaw=None, cheek_puff=0.0):
             raise RigError(f"cheek_puff = {p.tolist()} is outside [0, 1].")
         return activations
     # traced: a run-time check inside the compiled call
+    if not _TRACED_CHECKS.get():
+        return activations
     a = jnp.asarray(activations)
     ok = jnp.all(jnp.isfinite(a))
     for _, v in leaves:

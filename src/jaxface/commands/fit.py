@@ -112,6 +112,7 @@ def run_fit(
     arkit: object = "auto",
     landmarks: str = "file",
     notice=None,
+    subject_cache: object = None,
 ) -> list:
     """The library behind ``jaxface fit``: fit ``scans`` of the subject of ``neutral`` and
     write the results into ``out``. Returns the :class:`~jaxface.fit.pipeline.ExpressionFit`
@@ -129,6 +130,8 @@ def run_fit(
             without an explicitly given ``.lm3``.
         notice: optional ``(text) -> None`` told when landmarks are detected (default: a
             warning).
+        subject_cache: the subject cache of :func:`jaxface.fit.subject.prepare_subject`
+            (None: ``$JAXFACE_SUBJECT_CACHE``; ``"default"``; ``"off"``; a folder).
     """
     from ..atomic import ensure_out_dir
     from ..errors import FitError, LandmarkError
@@ -173,6 +176,7 @@ def run_fit(
         backend=backend,
         subject_options=subject_options,
         progress=progress,
+        cache=subject_cache,
     )
     step(f"fitting {len(loaded)} scan(s)")
     return fit_and_write(
@@ -196,10 +200,12 @@ def prepare_fit_subject(
     backend: str = "pbd",
     subject_options=None,
     progress=None,
+    cache: object = None,
 ):
     """The subject of ``jaxface fit``: its rig built once from the loaded ``neutral`` scan
     (:func:`load_fit_scan`) on ``template`` (default: the built-in head); returns the
-    :class:`~jaxface.fit.pipeline.Subject` that :func:`fit_and_write` fits scans with."""
+    :class:`~jaxface.fit.pipeline.Subject` that :func:`fit_and_write` fits scans with.
+    ``cache``: the subject cache (:func:`jaxface.fit.subject.prepare_subject`)."""
     from ..fit.pipeline import SubjectOptions, prepare_subject
 
     tmesh, tlm = _template(template, template_landmarks)
@@ -209,7 +215,12 @@ def prepare_fit_subject(
 
         sopt = replace(sopt, backend=backend)
     return prepare_subject(
-        neutral, template=tmesh, template_landmarks=tlm, options=sopt, progress=progress
+        neutral,
+        template=tmesh,
+        template_landmarks=tlm,
+        options=sopt,
+        progress=progress,
+        cache=cache,
     )
 
 
@@ -385,6 +396,15 @@ def register(app: typer.Typer) -> None:
             "'arkit' is null).",
         ),
         no_arkit: bool = typer.Option(False, "--no-arkit", help="Skip the ARKit readout."),
+        subject_cache: str = typer.Option(
+            "default",
+            "--subject-cache",
+            envvar="JAXFACE_SUBJECT_CACHE",
+            metavar="DIR|default|off",
+            help="Folder that keeps each neutral's registration, rig and reduced model for the "
+            "next run on the same neutral (default ~/.cache/jaxface/subjects, at most 4 GiB); "
+            "'off' builds without it.",
+        ),
         quiet: bool = typer.Option(False, "--quiet", "-q", help="Only print errors."),
     ):
         """Fit muscle activations, jaw pose and a rigid correction to expression scans of one
@@ -439,9 +459,10 @@ def register(app: typer.Typer) -> None:
             disable=quiet,
             transient=False,
         )
-        n_fit = outer_iterations * (
-            (len(scan) + (batch_size or len(scan)) - 1) // (batch_size or len(scan))
-        )
+        # the batches' annealed outer iterations and the neutral's self-fit (noise floor)
+        n_batches = (len(scan) + (batch_size or len(scan)) - 1) // (batch_size or len(scan))
+        n_fit = outer_iterations * (n_batches + 1)
+        written = [0]
         with prog:
             t_main = prog.add_task("jaxface fit", total=4 + n_fit + len(scan), info="")
 
@@ -449,12 +470,17 @@ def register(app: typer.Typer) -> None:
                 prog.update(t_main, advance=1, info=text)
 
             def on_progress(text):
-                if text.startswith("outer iteration"):
+                task = prog.tasks[t_main]
+                # extra iterations of unconverged scans are not counted ahead: the bar keeps
+                # room for the writes and never runs past its total
+                room = (task.total or 0) - (len(scan) - written[0]) - task.completed
+                if text.startswith("outer iteration") and room > 0:
                     prog.update(t_main, advance=1, info=text)
                 else:
                     prog.update(t_main, info=text)
 
             def done(r, files):
+                written[0] += 1
                 prog.update(t_main, advance=1, info=f"wrote {Path(files['json']).name}")
 
             results = run_fit(
@@ -476,6 +502,7 @@ def register(app: typer.Typer) -> None:
                 arkit=None if no_arkit else (ict if ict is not None else "auto"),
                 landmarks=landmarks,
                 notice=lambda text: console.print(f"[cyan]note:[/] {text}", markup=True),
+                subject_cache=subject_cache,
             )
         for r in results:  # shown even with --quiet: the result may be meaningless
             q = getattr(r, "quality", None)

@@ -178,6 +178,13 @@ def register(app: typer.Typer) -> None:
         batch_size: int | None = typer.Option(  # noqa: UP007
             None, "--batch-size", min=1, help="As jaxface fit (default: a subject's scans)."
         ),
+        subject_cache: str = typer.Option(
+            "default",
+            "--subject-cache",
+            envvar="JAXFACE_SUBJECT_CACHE",
+            metavar="DIR|default|off",
+            help="As jaxface fit: a resumed run loads the subjects it built.",
+        ),
         quiet: bool = typer.Option(False, "--quiet", "-q", help="Only print errors."),
     ):
         """Fit every expression scan of a database, one Dask task per subject (its rig built
@@ -254,6 +261,7 @@ def register(app: typer.Typer) -> None:
             batch_size=batch_size,
             landmarks=landmarks,
             arkit=None if no_arkit else (ict if ict is not None else "auto"),
+            subject_cache=subject_cache,
         )
         # the workers use the compile cache this process was given (--compile-cache)
         cache = getattr(jax.config, "jax_compilation_cache_dir", None)

@@ -17,7 +17,8 @@ import numpy as np
 
 from ..anatomy.interface import FaceRig
 from ..anatomy.jaw import JawPose
-from ..errors import FitError
+from ..errors import FitError, RigError
+from ..validate import traced_checks
 
 __all__ = ["ForwardModel", "synthesis_function", "exact_skin_and_vjp"]
 
@@ -25,8 +26,27 @@ __all__ = ["ForwardModel", "synthesis_function", "exact_skin_and_vjp"]
 def synthesis_function(rig: FaceRig) -> Callable:
     """``(a (M,), jaw (3,)) -> (V, 3)`` mm for a rig of either backend (a PBD
     :class:`~jaxface.anatomy.rig.Rig` or an LTW :class:`~jaxface.ltw.rig.LTWRig`: its
-    :meth:`~jaxface.anatomy.interface.FaceRig.synthesize`)."""
-    return lambda a, j: rig.synthesize(a, JawPose.from_array(j))
+    :meth:`~jaxface.anatomy.interface.FaceRig.synthesize`).
+
+    Traced without the rig's run-time input check (:func:`jaxface.validate.traced_checks`):
+    a program that contains it has a host callback, and JAX never keeps such a program in its
+    persistent compilation cache. The callers check their inputs on the host
+    (:class:`ForwardModel`), and the fit's solvers keep their controls finite and bounded;
+    a non-finite input gives a NaN skin."""
+
+    def fn(a, j):
+        with traced_checks(False):
+            return rig.synthesize(a, JawPose.from_array(j))
+
+    return fn
+
+
+def _check_finite(a, jaw) -> None:
+    """Refuse non-finite controls before a compiled synthesis (RigError)."""
+    if not (np.all(np.isfinite(np.asarray(a))) and np.all(np.isfinite(np.asarray(jaw)))):
+        raise RigError(
+            "NaN or inf in the activations or the jaw pose of a synthesis; give finite numbers."
+        )
 
 
 def exact_skin_and_vjp(exact_fn, a, jaw):
@@ -52,6 +72,10 @@ class ForwardModel:
     evaluates a batch one synthesis at a time through the same compiled function, so any
     batch size costs one compilation and no padding (on a CPU a ``vmap`` of the PBD solve is
     slower per item than this loop).
+
+    Every entry point checks its inputs on the host and raises
+    :class:`~jaxface.errors.RigError` for NaN or inf; the compiled programs carry no host
+    callback, so JAX's persistent compilation cache keeps them between processes.
     """
 
     def __init__(self, rig, *, chunk: int = 8):
@@ -78,6 +102,7 @@ class ForwardModel:
         return np.asarray(self.rig.rest)
 
     def __call__(self, a, jaw) -> np.ndarray:
+        _check_finite(a, jaw)
         self._count()
         dt = jnp.result_type(float)  # float64 when x64 is enabled, else float32
         return np.asarray(self._one(jnp.asarray(a, dt), jnp.asarray(jaw, dt)))
@@ -85,6 +110,7 @@ class ForwardModel:
     def with_vjp(self, a, jaw):
         """The skin ``(V, 3)`` mm (a JAX array) at ``a (M,)``, ``jaw (3,)`` and its VJP
         (:func:`exact_skin_and_vjp`, compiled once): one synthesis, counted in ``calls``."""
+        _check_finite(a, jaw)
         self._count()
         dt = jnp.result_type(float)
         return _exact_vjp_jit(self.fn, jnp.asarray(a, dt), jnp.asarray(jaw, dt))
@@ -98,6 +124,7 @@ class ForwardModel:
                 f"many() needs one jaw pose per activation row; got {len(J)} jaw poses for "
                 f"{len(A)} rows."
             )
+        _check_finite(A, J)
         dt = jnp.result_type(float)  # float64 when x64 is enabled, else float32
         out = np.zeros((len(A), len(self.rest), 3))
         step = max(self.chunk, 1)

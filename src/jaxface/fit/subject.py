@@ -27,6 +27,7 @@ from .forward import ForwardModel
 from .metrics import SurfaceIndex, landmark_dict
 from .reduced import ResponseModel, build_response_model
 from .register import Registration, Template, register_template
+from .subject_cache import CachedParts, UncacheableError, resolve_subject_cache, subject_key
 
 __all__ = ["SubjectOptions", "Subject", "prepare_subject", "subject_from_rig", "warp_teeth"]
 
@@ -151,15 +152,23 @@ def warp_teeth(template, registration, radius_mm: float = 60.0):
     )
 
 
-def _compile_and_sample(rig, tris, face_tri, l_tri, opt: SubjectOptions, say, timings: dict):
-    """The fit vertices (face triangles + landmark triangles), the compiled rig and its reduced
-    model over them; records ``compile_s`` and ``response_s`` in ``timings``."""
-    fit_ids = np.unique(np.concatenate([tris[face_tri].ravel(), tris[np.asarray(l_tri)].ravel()]))
+def _fit_ids(tris, face_tri, l_tri) -> np.ndarray:
+    """The fit vertices: those of the face triangles and of the landmark triangles."""
+    return np.unique(np.concatenate([tris[face_tri].ravel(), tris[np.asarray(l_tri)].ravel()]))
+
+
+def _compile(rig, opt: SubjectOptions, say, timings: dict) -> ForwardModel:
+    """The compiled rig (one synthesis at rest); records ``compile_s``."""
     t = time.perf_counter()
     say("compiling the rig")
     forward = ForwardModel(rig, chunk=opt.chunk)
     forward(np.zeros(forward.n_controls), np.zeros(3))
     timings["compile_s"] = time.perf_counter() - t
+    return forward
+
+
+def _sample(forward, fit_ids, opt: SubjectOptions, say, timings: dict) -> ResponseModel:
+    """The reduced model over ``fit_ids``; records ``response_s``."""
     t = time.perf_counter()
     say(
         f"sampling the reduced model ({forward.n_controls * opt.levels + 5 * opt.pitch_knots} syntheses)"
@@ -168,7 +177,14 @@ def _compile_and_sample(rig, tris, face_tri, l_tri, opt: SubjectOptions, say, ti
         forward, fit_ids, levels=opt.levels, pitch_knots=opt.pitch_knots, controls=opt.controls
     )
     timings["response_s"] = time.perf_counter() - t
-    return fit_ids, forward, response
+    return response
+
+
+def _compile_and_sample(rig, tris, face_tri, l_tri, opt: SubjectOptions, say, timings: dict):
+    """The fit vertices, the compiled rig and its reduced model over them."""
+    fit_ids = _fit_ids(tris, face_tri, l_tri)
+    forward = _compile(rig, opt, say, timings)
+    return fit_ids, forward, _sample(forward, fit_ids, opt, say, timings)
 
 
 def prepare_subject(
@@ -179,6 +195,7 @@ def prepare_subject(
     template_landmarks=None,
     options: SubjectOptions | None = None,
     progress: Callable[[str], None] | None = None,
+    cache=None,
 ) -> Subject:
     """Build the subject's rig from its neutral scan.
 
@@ -191,6 +208,11 @@ def prepare_subject(
         template_landmarks: landmarks of a template mesh, mm.
         options: :class:`SubjectOptions`.
         progress: called with a short text before each step.
+        cache: the subject cache (:mod:`jaxface.fit.subject_cache`): None reads
+            ``$JAXFACE_SUBJECT_CACHE`` (unset: off), ``"default"``, ``"off"``, a folder or a
+            :class:`~jaxface.fit.subject_cache.SubjectCache`. On a hit the registration,
+            the rig and the reduced model are loaded (``timings["cache_load_s"]``) and only
+            the compilation runs; the subject is the same as a fresh build's.
 
     Raises:
         LandmarkError: the neutral has no landmarks; FitError / RigError: registration or
@@ -211,12 +233,59 @@ def prepare_subject(
             f"the neutral scan {getattr(neutral, 'path', '')} has no landmarks: give its .lm3 file "
             "(--neutral-landmarks) or put it beside the scan."
         )
+    v, tr, _ = neutral.mesh_arrays()
+    store = resolve_subject_cache(cache)
+    key = None
+    if store is not None:
+        try:
+            key = subject_key(
+                v, tr, landmark_dict(neutral.landmarks), template, template_landmarks, opt
+            )
+        except UncacheableError as e:
+            say(f"subject cache not used ({e})")
+    t = time.perf_counter()
+    parts = store.load(key) if store is not None and key is not None else None
+    neutral_index = SurfaceIndex(v, tr)
+    if parts is not None:
+        assert store is not None
+        say(f"loaded the registered neutral, rig and reduced model from {store.folder}")
+        timings["cache_load_s"] = time.perf_counter() - t
+        forward = _compile(parts.rig, opt, say, timings)
+    else:
+        parts, forward = _build_parts(
+            neutral, neutral_index, template, template_landmarks, opt, say, timings
+        )
+        if store is not None and key is not None:
+            say(f"saving the subject in the cache {store.folder}")
+            store.store(key, parts)
+    rig, reg = parts.rig, parts.registration
+    tris = np.asarray(rig.triangles)
+    face_index = SurfaceIndex(reg.vertices, tris, parts.face_triangles)
+    return Subject(
+        neutral=neutral,
+        registration=reg,
+        rig=rig,
+        forward=forward,
+        response=parts.response,
+        fit_ids=parts.fit_ids,
+        face_triangles=parts.face_triangles,
+        landmark_names=parts.landmark_names,
+        landmark_tri=parts.landmark_tri,
+        landmark_bary=parts.landmark_bary,
+        neutral_index=neutral_index,
+        face_index=face_index,
+        backend=opt.backend,
+        timings=timings,
+    )
+
+
+def _build_parts(neutral, neutral_index, template, template_landmarks, opt, say, timings):
+    """Register, build the rig, compile it and sample its reduced model: the
+    :class:`~jaxface.fit.subject_cache.CachedParts` and the compiled forward model."""
     if template is None:
         template = generic_head()
     t = time.perf_counter()
     say("registering the template to the neutral scan")
-    v, tr, _ = neutral.mesh_arrays()
-    neutral_index = SurfaceIndex(v, tr)
     reg = register_template(
         neutral,
         template=template,
@@ -249,23 +318,18 @@ def prepare_subject(
     l_tri = np.asarray(lp.tri, np.int64)
     l_bary = np.asarray(lp.bary, np.float64)
     fit_ids, forward, response = _compile_and_sample(rig, tris, face_tri, l_tri, opt, say, timings)
-    face_index = SurfaceIndex(reg.vertices, tris, face_tri)
-    return Subject(
-        neutral=neutral,
+    parts = CachedParts(
         registration=reg,
         rig=rig,
-        forward=forward,
         response=response,
         fit_ids=fit_ids,
         face_triangles=face_tri,
         landmark_names=tuple(lm.names),
         landmark_tri=l_tri,
         landmark_bary=l_bary,
-        neutral_index=neutral_index,
-        face_index=face_index,
-        backend=opt.backend,
-        timings=timings,
+        timings=dict(timings),
     )
+    return parts, forward
 
 
 def subject_from_rig(

@@ -57,6 +57,8 @@ class FitSettings:
         landmarks: ``"file"`` or ``"auto"``, as ``jaxface fit --landmarks``.
         arkit: the ARKit readout's ICT data (``"auto"``: ``$JAXFACE_ICT``; a path; None: off),
             as ``jaxface fit --ict`` / ``--no-arkit``.
+        subject_cache: the subject cache folder, ``"default"`` or ``"off"``, as
+            ``jaxface fit --subject-cache`` (None: ``$JAXFACE_SUBJECT_CACHE`` of the worker).
     """
 
     options: FitOptions = field(default_factory=FitOptions)
@@ -67,6 +69,7 @@ class FitSettings:
     batch_size: int | None = None
     landmarks: str = "file"
     arkit: object = "auto"
+    subject_cache: str | None = None
 
 
 def error_text(e: BaseException) -> str:
@@ -225,6 +228,7 @@ def fit_subject(job: SubjectJob, settings: FitSettings, out: str | Path) -> list
                     template_landmarks=settings.template_landmarks,
                     backend=settings.subject_options.backend,
                     subject_options=settings.subject_options,
+                    cache=settings.subject_cache,
                 )
             except Exception as e:  # noqa: BLE001 - recorded on every scan of the subject
                 why = f"{error_text(e)} (building the rig of {job.subject} from {job.neutral.name})"
