@@ -1,6 +1,7 @@
 """The on-disk cache of prepared subjects (jaxface.fit.subject_cache) and the host-side
 input check of the fit's forward model, whose compiled programs can be cached by JAX."""
 
+import dataclasses
 import os
 import pickle
 import warnings
@@ -120,6 +121,22 @@ def test_store_load_and_damaged_entries(tmp_path):
         assert cache.load("b" * 32 + "c" * 32) is None
 
 
+def test_side_entries_live_and_go_with_their_entry(tmp_path):
+    cache = SubjectCache(tmp_path)
+    k = "d" * 64
+    assert cache.store_json(k, "noise-floor-x", {"AU1": 0.1}) is None  # no entry: not kept
+    cache.store(k, _parts(5))
+    assert cache.store_json(k, "noise-floor-x", {"AU1": 0.1}) is not None
+    assert cache.load_json(k, "noise-floor-x") == {"AU1": 0.1}
+    assert cache.load_json(k, "noise-floor-y") is None
+    cache.side_path(k, "noise-floor-x").write_text("{not json")
+    with pytest.warns(UserWarning, match="unreadable"):
+        assert cache.load_json(k, "noise-floor-x") is None
+    assert not cache.side_path(k, "noise-floor-x").exists()
+    cache.store_json(k, "noise-floor-x", {"AU1": 0.1})
+    assert cache.clear() == 1 and not list(tmp_path.iterdir())
+
+
 def test_trim_removes_the_entries_used_longest_ago(tmp_path):
     size = len(pickle.dumps(("k" * 64, _parts(2000)), protocol=pickle.HIGHEST_PROTOCOL))
     cache = SubjectCache(tmp_path, max_bytes=int(2.5 * size))
@@ -183,6 +200,34 @@ def test_a_cached_subject_is_the_fresh_build(shared, tmp_path):
     jaw = np.array([6.0, 1.0, 0.5])
     np.testing.assert_array_equal(a.forward(act, jaw), b.forward(act, jaw))
     assert len(cache.entries()) == 1
+    # the first fit keeps the AU readout's noise floor beside the entry; a fit of the loaded
+    # subject reads it instead of fitting the neutral to itself again (fit_expressions runs
+    # set_noise_floor with the self-fit; here a counted stand-in for the self-fit)
+    from jaxface.fit.options import FitOptions
+    from jaxface.fit.pipeline import set_noise_floor
+
+    fast, other = FitOptions(max_steps=10), FitOptions(max_steps=11)
+    calls: list[int] = []
+
+    def self_fit():
+        calls.append(1)
+        return {"AU1": 0.01 * len(calls), "AU12": 0.02}
+
+    set_noise_floor(a, fast, self_fit)
+    assert a.au_noise_floor == {"AU1": 0.01, "AU12": 0.02} and len(calls) == 1
+    assert a.cache_key == b.cache_key
+    said_c: list[str] = []
+    set_noise_floor(b, fast, self_fit, said_c.append)
+    assert b.au_noise_floor == a.au_noise_floor and len(calls) == 1
+    assert any("from the subject cache" in s for s in said_c)
+    set_noise_floor(b, other, self_fit)  # other options: another floor
+    assert b.au_noise_floor == {"AU1": 0.02, "AU12": 0.02} and len(calls) == 2
+    assert len(list(tmp_path.glob("noise-floor-*.json"))) == 2
+    # without a cache: computed every time
+    c = dataclasses.replace(b, cache=None, cache_key=None, au_noise_floor=None)
+    set_noise_floor(c, fast, self_fit)
+    assert len(calls) == 3
+    assert cache.clear() == 1 and not list(tmp_path.iterdir())
 
 
 def test_forward_model_checks_on_the_host_and_compiles_without_callbacks(default_rig):

@@ -50,6 +50,7 @@ from .options import FitOptions
 from .quality import assess, check_mirror, check_usable, coverage
 from .solve import fit_points
 from .subject import Subject, SubjectOptions, prepare_subject, subject_from_rig, warp_teeth
+from .subject_cache import UncacheableError, digest
 
 __all__ = [
     "SubjectOptions",
@@ -58,6 +59,7 @@ __all__ = [
     "subject_from_rig",
     "ExpressionFit",
     "fit_expressions",
+    "set_noise_floor",
     "scan_fit_inputs",
     "scan_stem",
     "warp_teeth",
@@ -165,6 +167,34 @@ def scan_stem(scan) -> str:
         if name.lower().endswith(suf):
             return name[: -len(suf)]
     return Path(p).stem
+
+
+def _noise_floor_entry(subject: Subject, opt: FitOptions) -> str | None:
+    """The subject cache's side entry of the noise floor under ``opt`` (None: no cache)."""
+    if getattr(subject, "cache", None) is None or getattr(subject, "cache_key", None) is None:
+        return None
+    try:
+        return f"noise-floor-{digest(opt)[:24]}"
+    except UncacheableError:
+        return None
+
+
+def set_noise_floor(subject: Subject, opt: FitOptions, self_fit, say=None) -> None:
+    """Set ``subject.au_noise_floor``: from the subject cache's side entry for ``opt``
+    (:mod:`jaxface.fit.subject_cache`) when there is one, else ``self_fit()`` (the neutral
+    fitted to itself: AU -> intensity), then kept beside the subject's cache entry."""
+    say = say or (lambda s: None)
+    entry = _noise_floor_entry(subject, opt)
+    if entry is not None:
+        cached = subject.cache.load_json(subject.cache_key, entry)
+        if isinstance(cached, dict) and cached:
+            say("the AU readout's noise floor from the subject cache")
+            subject.au_noise_floor = {str(k): float(v) for k, v in cached.items()}
+            return
+    say("fitting the neutral to itself (the AU readout's noise floor)")
+    subject.au_noise_floor = dict(self_fit())
+    if entry is not None:  # the same value a recomputation gives
+        subject.cache.store_json(subject.cache_key, entry, subject.au_noise_floor)
 
 
 def fit_expressions(
@@ -327,23 +357,25 @@ def fit_expressions(
         )
 
     if noise_floor and loaded and subject.au_noise_floor is None:
-        say("fitting the neutral to itself (the AU readout's noise floor)")
-        _, inp_n = prepare(subject.neutral)
-        (f_n,) = fit_points(
-            subject.forward,
-            subject.response,
-            subject.fit_ids,
-            subject.face_triangles,
-            [inp_n],
-            subject.landmark_tri,
-            subject.landmark_bary,
-            opt,
-            progress=say,
-        )
-        jn = f_n.jaw_effective
-        subject.au_noise_floor = au_intensities(
-            f_n.activations, subject.muscle_names, JawPose(float(jn[0]), float(jn[1]), float(jn[2]))
-        )
+
+        def self_fit() -> dict:
+            _, inp_n = prepare(subject.neutral)
+            (f_n,) = fit_points(
+                subject.forward,
+                subject.response,
+                subject.fit_ids,
+                subject.face_triangles,
+                [inp_n],
+                subject.landmark_tri,
+                subject.landmark_bary,
+                opt,
+                progress=say,
+            )
+            jn = f_n.jaw_effective
+            jaw = JawPose(float(jn[0]), float(jn[1]), float(jn[2]))
+            return au_intensities(f_n.activations, subject.muscle_names, jaw)
+
+        set_noise_floor(subject, opt, self_fit, say)
     for b0 in range(0, len(loaded), bs):
         batch = loaded[b0 : b0 + bs]
         say(

@@ -76,6 +76,9 @@ class Subject:
         neutral_index: :class:`jaxface.fit.metrics.SurfaceIndex` of the neutral scan.
         face_index: :class:`SurfaceIndex` of the registered neutral's face region.
         timings: seconds per build step.
+        cache, cache_key: the :class:`~jaxface.fit.subject_cache.SubjectCache` and key the
+            subject was stored under or loaded from (None without a cache); the fit keeps
+            the noise floor beside it.
         au_noise_floor: AU -> intensity of the self-fit (the neutral fitted to itself), the
             AU readout's noise floor (:mod:`jaxface.fit.quality`); set by the first
             :func:`fit_expressions` call with ``noise_floor=True``.
@@ -96,6 +99,8 @@ class Subject:
     backend: str
     timings: dict = field(default_factory=dict)
     au_noise_floor: dict | None = None
+    cache: Any = None
+    cache_key: str | None = None
 
     @property
     def muscle_names(self) -> tuple[str, ...]:
@@ -276,6 +281,8 @@ def prepare_subject(
         face_index=face_index,
         backend=opt.backend,
         timings=timings,
+        cache=store if key is not None else None,
+        cache_key=key,
     )
 
 

@@ -23,6 +23,11 @@ Any change to any of them is a miss, and a fresh build replaces nothing that a d
 points to. A template object the key cannot describe (e.g. a Python head object with custom
 fields) is not cached; the build runs as without a cache.
 
+Beside an entry, small JSON side entries keep what a first fit of the subject computes once
+per set of fit options: the AU readout's noise floor (the neutral fitted to itself,
+:func:`jaxface.fit.pipeline.fit_expressions`), named by a :func:`digest` of the
+:class:`~jaxface.fit.options.FitOptions`. They go with their entry.
+
 **The entries** are pickles (about 120 MB for a Bosphorus subject), written atomically
 (:mod:`jaxface.atomic`). A truncated or unreadable entry is reported with a warning, removed
 and rebuilt. Loading a pickle runs code, so the cache folder must be as trusted as the code
@@ -42,6 +47,7 @@ import dataclasses
 import functools
 import hashlib
 import importlib.metadata
+import json
 import os
 import pickle
 import warnings
@@ -51,7 +57,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from ..atomic import write_bytes_atomic
+from ..atomic import write_bytes_atomic, write_json_atomic
 
 __all__ = [
     "SubjectCache",
@@ -60,6 +66,7 @@ __all__ = [
     "resolve_subject_cache",
     "code_digest",
     "subject_key",
+    "digest",
     "ENV",
     "UncacheableError",
 ]
@@ -173,6 +180,18 @@ def _feed(h, obj: Any, where: str = "value") -> None:
         raise UncacheableError(f"{where}: a {type(obj).__name__} cannot be keyed by content")
 
 
+def digest(obj) -> str:
+    """SHA-256 (hex) of ``obj``'s content (arrays, numbers, strings, containers, dataclasses,
+    meshes, landmarks), e.g. of a :class:`~jaxface.fit.options.FitOptions`.
+
+    Raises:
+        UncacheableError: a value the digest cannot describe.
+    """
+    h = hashlib.sha256()
+    _feed(h, obj)
+    return h.hexdigest()
+
+
 def subject_key(vertices, triangles, landmarks: dict, template, template_landmarks, options) -> str:
     """The cache key (hex SHA-256) of a subject build (see the module doc).
 
@@ -247,6 +266,50 @@ class SubjectCache:
             os.utime(p)  # most recently used
         return parts
 
+    def side_path(self, key: str, name: str) -> Path:
+        return self.folder / f"{name}-{key[:32]}.json"
+
+    def load_json(self, key: str, name: str) -> dict | None:
+        """The side entry ``name`` of ``key`` (a JSON object), or None; a damaged one is
+        removed with a warning."""
+        p = self.side_path(key, name)
+        if not p.is_file():
+            return None
+        try:
+            obj = json.loads(p.read_text(encoding="utf-8"))
+            if not isinstance(obj, dict) or obj.get("key") != key:
+                raise ValueError("the entry belongs to another key")
+        except Exception as e:  # rebuilt like a damaged entry
+            warnings.warn(
+                f"subject cache: {p} is unreadable ({type(e).__name__}: {e}); rebuilding it.",
+                stacklevel=2,
+            )
+            with contextlib.suppress(OSError):
+                p.unlink()
+            return None
+        return obj["value"]
+
+    def store_json(self, key: str, name: str, value: dict) -> Path | None:
+        """Write the side entry ``name`` of ``key`` atomically (only beside an entry of
+        ``key``); None, with a warning, when it cannot be written."""
+        if not self.path(key).is_file():
+            return None
+        try:
+            return write_json_atomic(self.side_path(key, name), {"key": key, "value": value})
+        except Exception as e:  # the cache is an optimisation: never fail the fit
+            warnings.warn(
+                f"subject cache: {name} not written in {self.folder} ({e}).", stacklevel=2
+            )
+            return None
+
+    def _remove(self, entry: Path) -> None:
+        """Remove an entry file and its side entries."""
+        stem = entry.stem.removeprefix("subject-")
+        for side in self.folder.glob(f"*-{stem}.json"):
+            with contextlib.suppress(OSError):
+                side.unlink()
+        entry.unlink()
+
     def store(self, key: str, parts: CachedParts) -> Path | None:
         """Write the entry of ``key`` atomically, then trim the folder to ``max_bytes``.
         Returns the file, or None (with a warning) when the folder cannot be written."""
@@ -275,7 +338,7 @@ class SubjectCache:
                 continue
             with contextlib.suppress(OSError):
                 size = f.stat().st_size
-                f.unlink()
+                self._remove(f)
                 total -= size
                 removed.append(f)
         return removed
@@ -285,7 +348,7 @@ class SubjectCache:
         files = self.entries()
         for f in files:
             with contextlib.suppress(OSError):
-                f.unlink()
+                self._remove(f)
         return len(files)
 
 
