@@ -4,8 +4,9 @@ Every ``jaxface`` process compiles the rig's synthesis, the inner least-squares 
 the reverse pass of the gradient correction before it fits anything: about 28 s of a
 single-scan ``jaxface fit`` on the 2-core CPU. JAX can keep compiled programs on disk
 (``jax_compilation_cache_dir``); a later process that compiles the same program (the same
-subject's rig, the same solver shapes) loads it instead. A second ``jaxface fit`` of one
-bs900 scan took 32.4 s instead of 54.4 s.
+subject's rig, the same solver shapes) loads it instead. Programs with a host callback are
+never written (JAX's rule), so the fit traces the rig without its run-time input check
+(:func:`jaxface.validate.traced_checks`). Measurements: ``docs/benchmarks.md``, "Fit speed".
 
 The command line turns the cache on by default, in :func:`default_cache_dir`;
 ``--compile-cache DIR`` or ``JAXFACE_COMPILE_CACHE=DIR`` moves it and ``off`` turns it off.
