@@ -243,27 +243,34 @@ class SubjectCache:
         files = list(self.folder.glob("subject-*.pkl"))
         return sorted(files, key=lambda p: p.stat().st_mtime, reverse=True)
 
-    def load(self, key: str) -> CachedParts | None:
-        """The entry of ``key``, or None (a miss). A damaged entry is removed with a
-        warning."""
-        p = self.path(key)
+    @staticmethod
+    def _read(p: Path, key: str, read, kind: type):
+        """``read(p) -> (stored key, value)``; the value if the file exists, holds ``key``
+        and a ``kind``, else None. A damaged file is removed with a warning."""
         if not p.is_file():
             return None
         try:
-            with open(p, "rb") as f:
-                stored_key, parts = pickle.load(f)
-            if stored_key != key or not isinstance(parts, CachedParts):
+            stored_key, value = read(p)
+            if stored_key != key or not isinstance(value, kind):
                 raise ValueError("the entry belongs to another key")
         except Exception as e:  # a damaged entry of any kind is rebuilt
             warnings.warn(
                 f"subject cache: {p} is unreadable ({type(e).__name__}: {e}); rebuilding it.",
-                stacklevel=2,
+                stacklevel=3,
             )
             with contextlib.suppress(OSError):
                 p.unlink()
             return None
-        with contextlib.suppress(OSError):
-            os.utime(p)  # most recently used
+        return value
+
+    def load(self, key: str) -> CachedParts | None:
+        """The entry of ``key``, or None (a miss). A damaged entry is removed with a
+        warning."""
+        p = self.path(key)
+        parts = self._read(p, key, lambda f: pickle.loads(f.read_bytes()), CachedParts)
+        if parts is not None:
+            with contextlib.suppress(OSError):
+                os.utime(p)  # most recently used
         return parts
 
     def side_path(self, key: str, name: str) -> Path:
@@ -272,22 +279,12 @@ class SubjectCache:
     def load_json(self, key: str, name: str) -> dict | None:
         """The side entry ``name`` of ``key`` (a JSON object), or None; a damaged one is
         removed with a warning."""
-        p = self.side_path(key, name)
-        if not p.is_file():
-            return None
-        try:
-            obj = json.loads(p.read_text(encoding="utf-8"))
-            if not isinstance(obj, dict) or obj.get("key") != key:
-                raise ValueError("the entry belongs to another key")
-        except Exception as e:  # rebuilt like a damaged entry
-            warnings.warn(
-                f"subject cache: {p} is unreadable ({type(e).__name__}: {e}); rebuilding it.",
-                stacklevel=2,
-            )
-            with contextlib.suppress(OSError):
-                p.unlink()
-            return None
-        return obj["value"]
+
+        def read(f: Path):
+            obj = json.loads(f.read_text(encoding="utf-8"))
+            return obj.get("key"), obj.get("value")
+
+        return self._read(self.side_path(key, name), key, read, dict)
 
     def store_json(self, key: str, name: str, value: dict) -> Path | None:
         """Write the side entry ``name`` of ``key`` atomically (only beside an entry of
