@@ -16,7 +16,7 @@ and settings:
 * ``fit-db`` with each ``--workers`` count: :func:`jaxface.fitdb.runner.run_database` on an
   embedded LocalCluster (worker start-up included), ``--no-resume``.
 
-Settings: by default the quick settings of ``tests/test_fitdb.py`` (two controls sampled and
+Settings: by default the quick settings of ``tests/fitdb/test_fitdb.py`` (two controls sampled and
 fitted, 200 points, one outer iteration): a full fit of a subject takes minutes on 2 cores,
 and the comparison is about scheduling, not the fit; ``--full`` uses ``jaxface fit``'s
 defaults. The compile cache is off in every process (a warm cache would favour whichever
@@ -126,7 +126,9 @@ def main() -> None:
     res: dict = {
         "machine": f"{platform.machine()}, {os.cpu_count()} cores",
         "load_average_start": os.getloadavg(),
-        "settings": "full (jaxface fit defaults)" if args.full else "quick (tests/test_fitdb.py)",
+        "settings": "full (jaxface fit defaults)"
+        if args.full
+        else "quick (tests/fitdb/test_fitdb.py)",
         "subjects": subjects,
         "runs": {},
     }

@@ -19,7 +19,7 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 # ``$XDG_CACHE_HOME``, so the library's on-disk caches (ARKit inverse maps) are shared too and
 # nothing is written to the home folder. ``JAXFACE_TEST_CACHE=DIR`` keeps the folder between
 # runs (a warm re-run); otherwise it is a fresh temporary folder removed at the end. Tests of
-# the cache itself use their own folders (tests/test_cli.py).
+# the cache itself use their own folders (tests/commands/test_cli.py).
 # (pytest-xdist workers and nested pytest runs inherit the folder of the process that made it,
 # which alone removes it.)
 _INHERITED = os.environ.get("JAXFACE_TEST_CACHE") or os.environ.get("_JAXFACE_SESSION_CACHE")

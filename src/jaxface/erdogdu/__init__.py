@@ -59,7 +59,7 @@ Our design where the thesis is silent (the layouts are only in its figures 5-8 t
 * ``snap="surface"`` (closest point on the triangles) is offered beside the thesis's
   nearest vertex (``snap="vertex"``, default).
 
-The thesis gives no numbers (notes sec. 5); the tests in ``tests/test_erdogdu.py`` measure
+The thesis gives no numbers (notes sec. 5); the tests in ``tests/erdogdu/test_erdogdu.py`` measure
 ours on the Bosphorus-style data.
 
 Layout: :mod:`.layouts` (control-point layouts, AU names), :mod:`.face` (faces and frames),

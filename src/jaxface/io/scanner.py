@@ -13,7 +13,7 @@ The rays are parallel, so casting them is an orthographic z-buffer: every triang
 projected on the x/y plane, the grid nodes inside its projection get the triangle's depth by
 barycentric interpolation, and each node keeps the nearest (largest ``z``) one
 (:func:`cast_grid`, vectorised NumPy, processed in chunks to bound the memory). The hits are
-the exact ray/triangle intersections: ``tests/test_cli_commands.py`` checks them against
+the exact ray/triangle intersections: ``tests/commands/test_commands.py`` checks them against
 :meth:`jaxface.mesh.TriMesh.ray_cast`, which is 10-50 times slower for a whole grid.
 
 Grid nodes lie on integer multiples of the resolution (:func:`grid_axes`), so a mesh made

@@ -49,7 +49,7 @@ from .checks import find_duplicates
 from .fitting import fit, fit_numpy
 from .kernels import KERNELS, kernel_values
 from .kernels import KernelName as KernelName  # not in __all__ (as before), still importable
-from .morph import _PARALLEL_MIN_ELEMENTS as _PARALLEL_MIN_ELEMENTS  # read by tests/test_rbf.py
+from .morph import _PARALLEL_MIN_ELEMENTS as _PARALLEL_MIN_ELEMENTS  # read by tests/rbf/test_rbf.py
 from .morph import Morph, warp_mesh, warp_points
 
 __all__ = [

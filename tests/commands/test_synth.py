@@ -7,9 +7,9 @@ import json
 
 import numpy as np
 import pytest
+from test_commands import run_cli, run_main
 
 from jaxface.cli import EXIT_USAGE
-from test_cli_commands import run_cli, run_main
 
 
 @pytest.fixture(scope="module")

@@ -167,7 +167,7 @@ def test_fit_loader_detects_forces_and_prefers_an_explicit_file(tmp_path, shared
 @pytest.mark.timeout(1800)
 def test_cli_fit_on_a_scan_without_landmarks(tmp_path, shared):
     # the expression scan has no .lm3 beside it; the neutral keeps its file, so the subject
-    # (and, with the same options as tests/test_fit_cli.py, its compiled programs) comes from
+    # (and, with the same options as tests/commands/test_fit.py, its compiled programs) comes from
     # the session's caches, and the run pays for the detection and the fit
     root = shared("data", "bosphorus_style")
     link = tmp_path / "bs900_LFAU_12_0.bnt"

@@ -109,7 +109,7 @@ def test_cli_missing_landmarks_is_a_clear_error(tmp_path):
 
     root = shared_path("data", "bosphorus_style")
     # (a scan without a .lm3 beside it is no error any more: its landmarks are detected, see
-    # tests/test_landmarks_auto.py::test_cli_fit_on_a_scan_without_landmarks)
+    # tests/detect/test_detect.py::test_cli_fit_on_a_scan_without_landmarks)
     # an explicit landmark file that does not exist: missing file (exit code 3)
     proc = _run(
         [
