@@ -11,8 +11,8 @@ fitted by bounded least squares ``min_x |R x - B_k|^2``, ``0 <= x <= 1``, on the
 ``x = clip(sum_k c_k x_k, 0, 1)`` (:meth:`InverseMap.controls`). The physics is not linear,
 so the synthesised face approximates the ARKit blend; the map's per-shape misfit (mm) is
 stored with it. Maps are cached as JSON in ``$XDG_CACHE_HOME/jaxface/arkit`` (or
-``~/.cache/jaxface/arkit``), keyed by a hash of the rig's rest skin, triangles, controls and
-the ICT file.
+``~/.cache/jaxface/arkit``), keyed by a hash of the rig's rest skin, triangles, controls, the
+ICT file and the transfer's version (:data:`jaxface.interop.arkit.basis.TRANSFER_VERSION`).
 """
 
 from __future__ import annotations
@@ -191,6 +191,7 @@ def inverse_map_cached(
         DataNotFoundError: no ICT data (:func:`jaxface.interop.arkit.transfer_ict_basis`).
     """
     from .arkit import default_ict_path, transfer_ict_basis
+    from .arkit.basis import TRANSFER_VERSION
 
     rest = np.asarray(rig.rest, np.float64)
     tris = np.asarray(rig.triangles, np.int64)
@@ -200,6 +201,7 @@ def inverse_map_cached(
         h.update(np.ascontiguousarray(arr).tobytes())
     h.update("|".join(rig.muscle_names).encode())
     h.update(str(ict).encode())
+    h.update(f"transfer-v{TRANSFER_VERSION}".encode())
     if face_mask is not None:
         h.update(np.asarray(face_mask, bool).tobytes())
     key = h.hexdigest()[:24]

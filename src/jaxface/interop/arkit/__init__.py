@@ -21,8 +21,8 @@ project's facial motion cloning (:func:`jaxface.clone.clone_motion`, landmarks +
 ``max_iterations`` refinement steps), restricted to the subject's face region.
 
 **Readout** (:func:`solve_arkit`, :func:`fit_arkit_to_scan`): bounded, L1-weighted least
-squares, ``min_c sum_i w_i |B_i c - d_i|^2 / sum_i w_i + l1 * sum_k c_k`` with
-``0 <= c_k <= 1``, solved exactly as a box-constrained QP (:func:`box_qp`, through
+squares, ``min_c sum_i w_i |B_i c - d_i|^2 / sum_i w_i + l1 * sum_k s_k c_k`` with
+``0 <= c_k <= 1`` and ``s_k`` shape ``k``'s RMS motion (the lasso on unit-RMS shapes), solved exactly as a box-constrained QP (:func:`box_qp`, through
 ``scipy.optimize.lsq_linear`` on the Cholesky factor of the normal matrix), re-weighted with
 the fit's robust weights (Tukey's biweight at ``max(4.685 * 1.4826 * MAD, floor)``).
 
@@ -33,7 +33,7 @@ of a fit).
 
 from __future__ import annotations
 
-from .basis import ArkitBasis, transfer_ict_basis
+from .basis import ArkitBasis, ict_transfer_error, transfer_ict_basis
 from .fit_readout import ArkitReadout, readout_for_subject
 from .ict import MULTIPIE68_TO_BOSPHORUS, default_ict_path, ict_bosphorus_landmarks
 from .names import (
@@ -67,6 +67,7 @@ __all__ = [
     "ict_bosphorus_landmarks",
     "ArkitBasis",
     "ArkitSolution",
+    "ict_transfer_error",
     "transfer_ict_basis",
     "box_qp",
     "tukey_weights",

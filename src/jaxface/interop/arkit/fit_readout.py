@@ -46,7 +46,8 @@ class ArkitReadout:
             **sol.to_dict(),
             "source": self.basis.source,
             "method": "bounded L1-weighted least squares (0 <= c <= 1, l1 "
-            f"{self.l1:g} mm^2) of the ICT-FaceKit ARKit shapes cloned onto the subject "
+            f"{self.l1:g} mm per mm of each shape's RMS motion) of the ICT-FaceKit ARKit "
+            "shapes cloned onto the subject "
             "(jaxface.interop.arkit) to the fitted skin motion, Tukey-weighted",
             "transfer": dict(self.basis.info),
             "sides": "Left = the subject's own left (+x), as ICT's _L",

@@ -18,7 +18,11 @@ __all__ = ["MULTIPIE68_TO_BOSPHORUS", "default_ict_path", "ict_bosphorus_landmar
 # ------------------------------------------------------------------------------------------
 #: Multi-PIE 68-point index (0-based, ICT ``vertex_indices.json`` ``idx_to_landmark_verts``)
 #: -> Bosphorus label. Multi-PIE numbers the subject's right side first (17-21 the right brow,
-#: 36-39 the right eye), so 26 is the outer *left* eyebrow (+x).
+#: 36-39 the right eye), so 26 is the outer *left* eyebrow (+x). Bosphorus's "Chin middle" has
+#: no Multi-PIE counterpart: point 8 is the menton, the lowest point of the jaw line, which on
+#: the ICT head lies about 15 mm below and behind the chin's front middle. Pairing the two
+#: bent the cloning morph over the whole lower face (the cloned ``jawOpen`` 39 % off instead
+#: of 12 %), so the chin is left out.
 MULTIPIE68_TO_BOSPHORUS: dict[int, str] = {
     17: "Outer right eyebrow",
     19: "Middle right eyebrow",
@@ -37,7 +41,6 @@ MULTIPIE68_TO_BOSPHORUS: dict[int, str] = {
     62: "Upper lip inner middle",
     66: "Lower lip inner middle",
     57: "Lower lip outer middle",
-    8: "Chin middle",
 }
 
 
@@ -67,7 +70,7 @@ def ict_bosphorus_landmarks(npz_path, landmark_ids=None):
         npz_path: ``ict_face.npz``.
         landmark_ids: ``{label: ICT vertex id}``; default: the Multi-PIE 68 ids of
             ``vertex_indices.json`` beside the ``.npz`` (ICT-FaceKit's own file), mapped by
-            :data:`MULTIPIE68_TO_BOSPHORUS` (18 labels).
+            :data:`MULTIPIE68_TO_BOSPHORUS` (17 labels).
 
     Raises:
         DataNotFoundError / LandmarkError: neither ids nor ``vertex_indices.json``.

@@ -116,12 +116,17 @@ def solve_arkit(
 ) -> ArkitSolution:
     """ARKit coefficients of a skin motion (e.g. fitted skin minus rest, same topology).
 
-    Minimises ``sum_i w_i |B_i c - d_i|^2 / sum_i w_i + l1 * sum_k c_k`` over ``0 <= c <= 1``
-    on the basis's vertices ``i`` (mask), with Tukey weights ``w_i`` of ``|B_i c - d_i|``
-    re-estimated ``iterations`` times (``robust=False``: ``w = 1``, one solve).
+    Minimises ``sum_i w_i |B_i c - d_i|^2 / sum_i w_i + l1 * sum_k s_k c_k`` over
+    ``0 <= c <= 1`` on the basis's vertices ``i`` (mask), with Tukey weights ``w_i`` of
+    ``|B_i c - d_i|`` re-estimated ``iterations`` times (``robust=False``: ``w = 1``, one
+    solve). ``s_k`` is shape ``k``'s RMS motion at coefficient 1 (:attr:`ArkitBasis.scale_mm`),
+    so the penalty is on motion in mm, not on coefficients: the lasso on unit-RMS shapes. A
+    plain ``l1 * sum_k c_k`` lets the large shapes (``jawOpen``, 11-14 mm RMS) through and
+    zeroes the small ones (``eyeWide``, 0.2-0.3 mm RMS, a 3 mm lid raise) whatever the data.
 
     Args:
-        motion: ``(V, 3)`` mm; l1: mm^2 per unit coefficient (sparsity).
+        motion: ``(V, 3)`` mm; l1: mm (sparsity; mm^2 of mean squared residual per mm of a
+            shape's RMS motion).
 
     Raises:
         FitError: shape mismatch or non-finite motion.
@@ -135,13 +140,14 @@ def solve_arkit(
     B = basis.deltas[ids][:, basis.mask].reshape(len(ids), -1).T  # (3P, K)
     y = d[basis.mask].reshape(-1)
     P = int(basis.mask.sum())
+    scale = basis.scale_mm[ids]
     w = np.ones(P)
     c = np.zeros(len(ids))
     n_it = iterations if robust else 1
     for _ in range(n_it):
         w3 = np.repeat(w / w.sum(), 3)
         Bw = B * w3[:, None]
-        c = box_qp(B.T @ Bw, Bw.T @ y - 0.5 * l1)
+        c = box_qp(B.T @ Bw, Bw.T @ y - 0.5 * l1 * scale)
         r = np.linalg.norm((B @ c - y).reshape(P, 3), axis=1)
         if robust:
             w = tukey_weights(r, robust_floor_mm)
@@ -171,7 +177,8 @@ def fit_arkit_to_scan(
 
     Each pass takes the closest scan point ``p_i`` and scan normal ``n_i`` of every basis
     vertex ``x_i(c)`` and solves ``min sum_i w_i (n_i . (rest_i + B_i c - p_i))^2 / sum w +
-    landmark_weight * mean_l |B_l c - m_l|^2 + l1 sum c`` on ``[0, 1]`` with Tukey weights;
+    landmark_weight * mean_l |B_l c - m_l|^2 + l1 sum_k s_k c_k`` on ``[0, 1]`` (``s_k`` as in
+    :func:`solve_arkit`, ``l1`` in mm) with Tukey weights;
     matches on the scan's border or farther than ``max_distance_mm`` are rejected. The
     point-to-plane term leaves motion along the skin (a brow sliding up) free; the landmark
     term pins it.
@@ -193,6 +200,7 @@ def fit_arkit_to_scan(
     ids = np.flatnonzero(basis.available)
     m = basis.mask
     Bm = basis.deltas[ids][:, m]  # (K, P, 3)
+    scale = basis.scale_mm[ids]
     c = np.zeros(len(ids))
     res = 0.0
     GL = np.zeros((len(ids), len(ids)))
@@ -222,7 +230,7 @@ def fit_arkit_to_scan(
             w = ok.astype(np.float64)
         w = w / w.sum()
         Aw = A * w[:, None]
-        c = box_qp(A.T @ Aw + GL, Aw.T @ b + gL - 0.5 * l1)
+        c = box_qp(A.T @ Aw + GL, Aw.T @ b + gL - 0.5 * l1 * scale)
         res = float(np.sqrt(np.sum(w * (A @ c - b) ** 2)))
     mot = float(np.sqrt(np.mean(np.sum(np.einsum("k,kpd->pd", c, Bm) ** 2, -1))))
     return _solution(basis, c, ids, res, mot, iterations)
