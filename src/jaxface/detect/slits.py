@@ -13,12 +13,19 @@ Method (:func:`refine_slits`), per slit, in the face frame of the coarse pose (`
    ``c = (mean of the scan vertices within 3 mm - p) . n`` (mm; positive in a valley).
    Points with ``c > VALLEY_MM`` and the vertices on a hole rim are slit candidates.
 3. **The slit** is the connected group of candidates (links shorter than 2.5 mm) that passes
-   nearest to the slit's centre and spans at least a third of the transferred width.
+   nearest to the slit's centre (within 6 mm for an eye, 10 mm for the mouth, whose centre a
+   smile lifts; the inner lip midpoints are taken only from a slit within 6 mm) and spans at
+   least a third of the transferred width. The mouth's slit is then
+   grown outward across breaks of up to 6 mm (:func:`_grow_slit`): a smile stretches the lips
+   thin, and a range scan sees their valley in pieces.
 4. **Corners** are its extreme points along ``left``; the inner lip midpoints (mouth) are its
-   top and bottom points within 3 mm of the midline. A refined point further than the slit's
+   top and bottom points within 3 mm of the midline (when the slit there is a hole's rim less
+   than 3 mm high, it is one lip of an open mouth: only the lip whose transferred midpoint is
+   nearer is placed). A refined point further than the slit's
    ``max_shift`` from the transferred one is not trusted (the transfer is kept), nor a slit
-   whose width differs from the transferred one by more than 25 % (eyes) or 35 % (mouth):
-   the valley merged with a hole or a crease, or was cut short.
+   whose width differs from the transferred one by more than 25 % (eyes) or 50 % (mouth; a
+   full smile or stretch widens it by 35-45 %): the valley merged with a hole or a crease,
+   or was cut short.
 """
 
 from __future__ import annotations
@@ -36,6 +43,9 @@ __all__ = ["refine_slits", "scan_rim_vertices"]
 
 VALLEY_MM = 0.3
 LINK_MM = 2.5
+GAP_MM = 6.0
+MIDLINE_CENTRE_MM = 6.0
+ONE_ARC_MM = 3.0
 
 
 @dataclass(frozen=True)
@@ -46,6 +56,8 @@ class _Slit:
     max_shift_mm: float
     width_tol: float  # accepted relative change of the slit's width
     midline: tuple[str, str] | None = None  # (upper, lower) midpoint labels
+    gap_mm: float = 0.0  # a break the slit is grown across (:func:`_grow_slit`); 0: none
+    centre_tol_mm: float = 6.0  # the slit passes this close to the transferred centre
 
 
 _SLITS = (
@@ -56,10 +68,54 @@ _SLITS = (
         15.0,
         18.0,
         22.0,
-        0.35,
+        0.5,
         ("Upper lip inner middle", "Lower lip inner middle"),
+        GAP_MM,
+        10.0,
     ),
 )
+
+
+def _grow_slit(
+    pts: np.ndarray,
+    lab: np.ndarray,
+    seed: np.ndarray,
+    cu: np.ndarray,
+    cw: np.ndarray,
+    gap_mm: float = 6.0,
+) -> np.ndarray:
+    """Extend the slit ``seed`` (bool over the candidates) with the candidate groups that
+    continue it outward past a gap: a group joins when one of its points lies within
+    ``gap_mm`` of the slit's current end on that side, it reaches farther out along
+    ``left`` (``cu``), and it rises or falls no more than its run (``|dw| <= |du| + 2 mm``
+    from that end; a slit, not a crease). A range scan breaks a thin slit (a smile's
+    stretched lips) into pieces where the valley is shallower than :data:`VALLEY_MM` for a
+    few samples. Only the mouth is grown: an eye's valley runs on into the lacrimal hollow and
+    the lid crease."""
+    sel = seed.copy()
+    while True:
+        grown = False
+        for side in (1.0, -1.0):
+            ends = np.flatnonzero(sel)
+            e = ends[np.argmax(side * cu[ends])]
+            for k in np.unique(lab[~sel]):
+                m = lab == k
+                if side * cu[m].max(initial=-np.inf) <= side * cu[e] and side > 0:
+                    continue
+                if side < 0 and cu[m].min() >= cu[e]:
+                    continue
+                dist = np.linalg.norm(pts[m] - pts[e], axis=1)
+                j = int(np.argmin(dist))
+                if dist[j] > gap_mm:
+                    continue
+                far = np.flatnonzero(m)[np.argmax(side * cu[m])]
+                if abs(cw[far] - cw[e]) > abs(cu[far] - cu[e]) + 2.0:
+                    continue
+                sel |= m
+                grown = True
+                break
+        if not grown:
+            return sel
 
 
 def scan_rim_vertices(index: SurfaceIndex) -> np.ndarray:
@@ -134,23 +190,36 @@ def refine_slits(
             dist = float(np.min(np.hypot(cu[m], cw[m])))
             if dist < best_d:
                 best, best_d = m, dist
-        if best is None or best_d > 6.0:
+        if best is None or best_d > s.centre_tol_mm:
             continue
-        pts, pu, pw = v[cand[best]], cu[best], cw[best]
+        seed = best
+        if s.gap_mm > 0:
+            best = _grow_slit(v[cand], lab, best, cu, cw, s.gap_mm)
+        pts, pu = v[cand[best]], cu[best]
         ratio = (pu.max() - pu.min()) / max(width, 1e-9)
         if not (1.0 - s.width_tol <= ratio <= 1.0 + s.width_tol):
             continue  # merged with a hole or a crease, or cut short: keep the transfer
         for label, p in ((s.corners[0], pts[np.argmax(pu)]), (s.corners[1], pts[np.argmin(pu)])):
             if np.linalg.norm(p - guesses[label]) <= s.max_shift_mm:
                 out[label] = p.copy()
-        if s.midline is not None:
-            mid = np.abs(pu) <= 3.0
+        if s.midline is not None and best_d <= MIDLINE_CENTRE_MM:
+            # the midpoints come from the slit found, not from the pieces grown onto its ends,
+            # and only when it passes close to the transferred centre (a slit found farther
+            # away may be one arc of an open mouth's rim)
+            mid = np.abs(cu[seed]) <= 3.0
             if mid.any():
-                mp, mw = pts[mid], pw[mid]
-                for label, p in (
-                    (s.midline[0], mp[np.argmax(mw)]),
-                    (s.midline[1], mp[np.argmin(mw)]),
-                ):
+                mp, mw = v[cand[seed]][mid], cw[seed][mid]
+                picks = [(s.midline[0], mp[np.argmax(mw)]), (s.midline[1], mp[np.argmin(mw)])]
+                on_rim = rim[cand[seed]][mid]
+                if on_rim.any() and float(mw.max() - mw.min()) < ONE_ARC_MM:
+                    # one thin arc of a hole's rim: the open mouth's other lip was not found,
+                    # so the arc is the lip whose transferred midpoint is nearer
+                    arc = mp[np.argmin(np.abs(mw - np.median(mw)))]
+                    near = [lb for lb in s.midline if lb in guesses]
+                    if near:
+                        keep = min(near, key=lambda lb: float(np.linalg.norm(arc - guesses[lb])))
+                        picks = [(lb, p) for lb, p in picks if lb == keep]
+                for label, p in picks:
                     if label in guesses and np.linalg.norm(p - guesses[label]) <= s.max_shift_mm:
                         out[label] = p.copy()
     return out
