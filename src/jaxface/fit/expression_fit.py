@@ -18,7 +18,7 @@ from ..render import Layer, draw, save_figure
 from .metrics import SurfaceIndex
 from .options import FitOptions
 from .params import rigid_numpy
-from .solve import PointFit
+from .point_fit import PointFit
 
 __all__ = ["ExpressionFit", "JSON_KEYS"]
 
