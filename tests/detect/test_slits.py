@@ -1,7 +1,7 @@
 """The eye and mouth refinement (:mod:`jaxface.detect.slits`) on synthetic range grids with a
 known slit: a smile's mouth valley broken into pieces is grown to its true corners, a steep
 crease beside it is not joined, and one arc of an open mouth's rim places only the lip it
-belongs to."""
+belongs to and reports the open mouth."""
 
 import numpy as np
 import pytest
@@ -55,7 +55,9 @@ def _mouth_guesses(y0=-2.0, half_width=24.0):
 
 def test_a_broken_smile_valley_is_grown_to_its_corners():
     index = _grid(_groove)
-    out = refine_slits(index, _mouth_guesses(), LEFT, UP, scan_rim_vertices(index))
+    findings = {}
+    out = refine_slits(index, _mouth_guesses(), LEFT, UP, scan_rim_vertices(index), findings)
+    assert findings == {}  # a closed mouth
     for label, sign in (("Left mouth corner", 1.0), ("Right mouth corner", -1.0)):
         want = np.array([sign * 32.0, _smile_curve(32.0), 0.0])
         assert label in out, out.keys()
@@ -96,7 +98,10 @@ def test_one_arc_of_an_open_mouth_places_only_its_own_lip():
     g = _mouth_guesses(y0=-2.0, half_width=25.0)
     g["Upper lip inner middle"] = np.array([0.0, 0.5, 0.0])
     g["Lower lip inner middle"] = np.array([0.0, -4.0, 0.0])
-    out = refine_slits(index, g, LEFT, UP, scan_rim_vertices(index))
+    findings = {}
+    out = refine_slits(index, g, LEFT, UP, scan_rim_vertices(index), findings)
     assert "Upper lip inner middle" in out
     assert abs(out["Upper lip inner middle"][1]) <= 1.0
     assert "Lower lip inner middle" not in out
+    # the detector then leaves the jaw's labels out (detect.JAW_FOLLOWERS)
+    assert "open" in findings["open_mouth"]

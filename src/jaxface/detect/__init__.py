@@ -3,11 +3,18 @@
 Units mm; see :func:`detect_landmarks` and docs/landmarks.md for the method and accuracy.
 """
 
-from .detector import Detection, MirroredScanWarning, detect_landmarks, scan_arrays
+from .detector import (
+    JAW_FOLLOWERS,
+    Detection,
+    MirroredScanWarning,
+    detect_landmarks,
+    scan_arrays,
+)
 from .pose import NoFaceFoundError, PoseEstimate, estimate_pose
 from .transfer import FaceTemplate, face_template, transfer_landmarks
 
 __all__ = [
+    "JAW_FOLLOWERS",
     "Detection",
     "FaceTemplate",
     "MirroredScanWarning",

@@ -25,11 +25,14 @@ from ..fit.metrics import SurfaceIndex, mesh_arrays
 from ..fit.register import Registration
 from ..landmarks import BOSPHORUS_LABELS, FACE_LABELS, Landmarks, check_side
 from .pose import PoseEstimate, estimate_pose
-from .refine import place_landmarks
+from .refine import Placement, place_landmarks
 from .slits import refine_slits, scan_rim_vertices
 from .transfer import face_template, transfer_landmarks
 
-__all__ = ["Detection", "MirroredScanWarning", "detect_landmarks", "scan_arrays"]
+__all__ = ["JAW_FOLLOWERS", "Detection", "MirroredScanWarning", "detect_landmarks", "scan_arrays"]
+
+#: labels carried by the jaw, left out when the mouth is open wider than the template followed
+JAW_FOLLOWERS = ("Lower lip inner middle", "Lower lip outer middle", "Chin middle")
 
 
 class MirroredScanWarning(UserWarning):
@@ -112,9 +115,15 @@ def detect_landmarks(scan, *, warn: bool = True, refine: bool = True) -> Detecti
     reg = transfer_landmarks(index, pose.transform, tpl)
     names = list(FACE_LABELS)
     guesses = reg.landmarks.array(names)
+    findings: dict[str, str] = {}
     if refine:
         better = refine_slits(
-            index, dict(zip(names, guesses)), pose.left, pose.up, scan_rim_vertices(index)
+            index,
+            dict(zip(names, guesses)),
+            pose.left,
+            pose.up,
+            scan_rim_vertices(index),
+            findings,
         )
         guesses = np.stack([better[n] if n in better else g for n, g in zip(names, guesses)])
     placed = place_landmarks(
@@ -126,6 +135,12 @@ def detect_landmarks(scan, *, warn: bool = True, refine: bool = True) -> Detecti
         reg.has_data,
         forward=pose.forward,
     )
+    if "open_mouth" in findings:
+        # the template's lower lip and chin stayed up with the closed mouth it was registered
+        # from (on the interior of the mouth): left out rather than placed 20 mm off
+        for n in JAW_FOLLOWERS:
+            if n in placed and placed[n].position is not None:
+                placed[n] = Placement(None, 0.0, findings["open_mouth"])
     ears = list(tpl.ear_lobes.names)
     placed.update(
         place_landmarks(

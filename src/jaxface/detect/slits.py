@@ -135,6 +135,7 @@ def refine_slits(
     left: np.ndarray,
     up: np.ndarray,
     rim: np.ndarray | None = None,
+    findings: dict[str, str] | None = None,
 ) -> dict[str, np.ndarray]:
     """Refined positions (mm, scan frame) of the eye corners, mouth corners and inner lip
     midpoints; labels it cannot refine are left out of the result.
@@ -144,6 +145,9 @@ def refine_slits(
         guesses: label -> ``(3,)`` transferred position, mm.
         left, up: ``(3,)`` unit vectors of the face frame (coarse pose).
         rim: optional precomputed :func:`scan_rim_vertices`.
+        findings: optional dict that receives ``"open_mouth"`` (a sentence) when the mouth
+            is a hole of which only the upper lip's rim was found near the transferred mouth:
+            the jaw is open wider than the registered template followed.
     """
     v = index.vertices
     nrm = index.vertex_normals
@@ -219,6 +223,11 @@ def refine_slits(
                     if near:
                         keep = min(near, key=lambda lb: float(np.linalg.norm(arc - guesses[lb])))
                         picks = [(lb, p) for lb, p in picks if lb == keep]
+                        if findings is not None and keep == s.midline[0]:
+                            findings["open_mouth"] = (
+                                "the mouth is open wider than the registered template "
+                                "followed (only the upper lip's rim was found)"
+                            )
                 for label, p in picks:
                     if label in guesses and np.linalg.norm(p - guesses[label]) <= s.max_shift_mm:
                         out[label] = p.copy()
