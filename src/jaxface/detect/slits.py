@@ -100,13 +100,9 @@ def _grow_slit(
             e = ends[np.argmax(side * cu[ends])]
             for k in np.unique(lab[~sel]):
                 m = lab == k
-                if side * cu[m].max(initial=-np.inf) <= side * cu[e] and side > 0:
-                    continue
-                if side < 0 and cu[m].min() >= cu[e]:
-                    continue
-                dist = np.linalg.norm(pts[m] - pts[e], axis=1)
-                j = int(np.argmin(dist))
-                if dist[j] > gap_mm:
+                if (side * cu[m]).max() <= side * cu[e]:
+                    continue  # does not reach past the end on this side
+                if np.linalg.norm(pts[m] - pts[e], axis=1).min() > gap_mm:
                     continue
                 far = np.flatnonzero(m)[np.argmax(side * cu[m])]
                 if abs(cw[far] - cw[e]) > abs(cu[far] - cu[e]) + 2.0:

@@ -22,7 +22,8 @@ project's facial motion cloning (:func:`jaxface.clone.clone_motion`, landmarks +
 
 **Readout** (:func:`solve_arkit`, :func:`fit_arkit_to_scan`): bounded, L1-weighted least
 squares, ``min_c sum_i w_i |B_i c - d_i|^2 / sum_i w_i + l1 * sum_k s_k c_k`` with
-``0 <= c_k <= 1`` and ``s_k`` shape ``k``'s RMS motion (the lasso on unit-RMS shapes), solved exactly as a box-constrained QP (:func:`box_qp`, through
+``0 <= c_k <= 1`` and ``s_k`` shape ``k``'s RMS motion (the lasso on unit-RMS shapes),
+solved exactly as a box-constrained QP (:func:`box_qp`, through
 ``scipy.optimize.lsq_linear`` on the Cholesky factor of the normal matrix), re-weighted with
 the fit's robust weights (Tukey's biweight at ``max(4.685 * 1.4826 * MAD, floor)``).
 

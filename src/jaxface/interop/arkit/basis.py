@@ -173,22 +173,25 @@ def ict_transfer_error(basis: ArkitBasis, vertices, ict_path=None) -> dict[str, 
     Returns:
         ARKit name -> relative RMS error (0 = exact) for the available shapes.
     """
-    import trimesh
-
     from ...anatomy.ict import FACE_VERTEX_COUNT, load_ict_face
+    from ...mesh import TriMesh
 
     p = Path(ict_path) if ict_path is not None else default_ict_path()
     if p is None or not p.is_file():
-        raise DataNotFoundError(f"the ICT-FaceKit file was not found ({p}).")
+        raise DataNotFoundError(
+            f"the ICT-FaceKit file was not found ({p}); pass ict_path=.../ict_face.npz or set "
+            "JAXFACE_ICT (or JAXFACE_SHARED)."
+        )
     ict = load_ict_face(p)
     deltas, avail = arkit_deltas_from_ict(
         ict.expression_names, ict.expression_deltas[:, :FACE_VERTEX_COUNT]
     )
-    tm = trimesh.Trimesh(ict.skin.vertices, ict.skin.triangles, process=False)
+    tris = np.asarray(ict.skin.triangles)
     m = basis.mask
-    cp, _, tid = trimesh.proximity.closest_point(tm, np.asarray(vertices, np.float64)[m])
-    bary = trimesh.triangles.points_to_barycentric(tm.triangles[tid], cp)
-    corners = np.asarray(ict.skin.triangles)[tid]
+    sp, _ = TriMesh(np.asarray(ict.skin.vertices), tris, validate=False).closest_points(
+        np.asarray(vertices, np.float64)[m]
+    )
+    bary, corners = np.asarray(sp.bary), tris[np.asarray(sp.tri)]
     out = {}
     for k in np.flatnonzero(avail & basis.available):
         true = np.einsum("pj,pjd->pd", bary, deltas[k][corners])

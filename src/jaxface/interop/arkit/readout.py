@@ -93,8 +93,7 @@ class ArkitSolution:
 def _solution(basis: ArkitBasis, c_av: np.ndarray, ids, res_mm, mot_mm, it) -> ArkitSolution:
     c = np.zeros(len(ARKIT_NAMES))
     c[ids] = c_av
-    m = basis.mask
-    contrib = np.sqrt(np.mean(np.sum((basis.deltas[:, m] * c[:, None, None]) ** 2, -1), -1))
+    contrib = basis.scale_mm * c  # c >= 0: the RMS of c_k B_k is c_k s_k
     return ArkitSolution(
         coefficients={n: float(v) for n, v in zip(ARKIT_NAMES, c)},
         contribution_mm={n: float(v) for n, v in zip(ARKIT_NAMES, contrib)},
