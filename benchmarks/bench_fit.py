@@ -296,7 +296,7 @@ def bench_subject(
             )
     t = time.perf_counter()
     c = time.process_time()
-    res = fit_expressions(S, [expression_scan(s) for s in stems], options=opt)
+    res = fit_expressions(S, [expression_scan(s) for s in stems], options=opt, arkit=_ict_file())
     wall = time.perf_counter() - t
     timing["batch"] = {
         "n_scans": len(stems),
@@ -362,6 +362,7 @@ def bench_subject(
             "au12_sides_sparse": {k: r.au_sparse.get(k) for k in ("AU12L", "AU12R")},
             "au_sparse_misfit_mm": r.au_sparse_misfit_mm,
             "activations": r.activations,
+            **_arkit_row(r.arkit, rec.weights),
         }
         out["scans"].append(row)
         print(f"  {stem}: fit {ev.mean:.3f} mm, B0 {b0.mean:.3f}, status {r.status}", flush=True)
@@ -481,6 +482,36 @@ def round_trip(which: str, opt_kw: dict) -> dict:
         "status": res.status,
         "steps": res.fit.steps,
         "conditioning": cond,
+    }
+
+
+def _ict_file():
+    """The shared ICT-FaceKit file for the fits' ARKit readout (None when absent)."""
+    from jaxface.errors import DataNotFoundError
+    from jaxface.testing import shared_path
+
+    try:
+        return shared_path("data", "ict", "ict_face.npz", pytest_skip=False)
+    except DataNotFoundError:
+        return None
+
+
+def _arkit_row(arkit, recipe_weights) -> dict:
+    """The fit's ARKit readout against the scan's ICT/ARKit recipe: each recipe shape's rank
+    among the 52 coefficients, and pass when every rank <= number in the recipe + 2."""
+    if arkit is None:
+        return {"arkit": None}
+    from jaxface.interop.arkit import arkit_weights_from_ict
+
+    want = arkit_weights_from_ict(recipe_weights)
+    order = [k for k, _ in sorted(arkit.items(), key=lambda kv: -kv[1])]
+    recipe = [k for k, w in want.items() if w > 0]
+    ranks = {k: order.index(k) + 1 for k in recipe}
+    return {
+        "arkit": {k: float(v) for k, v in arkit.items()},
+        "arkit_ranks": ranks,
+        "arkit_pass": all(v <= len(recipe) + 2 for v in ranks.values()),
+        "arkit_mae": float(np.mean([abs(arkit[k] - want[k]) for k in want if k in arkit])),
     }
 
 
@@ -697,6 +728,13 @@ def main() -> None:
             "n_fit_le_1mm": int(sum(s["fit_mean"] <= 1.0 for s in allex)),
             "n_2x_better_than_B0": int(sum((s["ratio_B0_over_fit"] or 0) >= 2.0 for s in allex)),
             "n_expressions": len(allex),
+            "arkit_pass": int(sum(bool(s.get("arkit_pass")) for s in allex)),
+            "arkit_mean_mae": float(
+                np.mean([s["arkit_mae"] for s in allex if "arkit_mae" in s] or [np.nan])
+            ),
+            "arkit_failures": {
+                s["stem"]: s["arkit_ranks"] for s in allex if s.get("arkit_pass") is False
+            },
             "neutral_registration_mm": {
                 s["stem"]: s["B0_mean"]
                 for r in report["subjects"]

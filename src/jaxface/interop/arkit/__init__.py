@@ -48,7 +48,9 @@ from .names import (
 )
 from .readout import (
     ArkitSolution,
+    EyeRims,
     box_qp,
+    eye_rim_motion,
     fit_arkit_to_scan,
     landmark_motion,
     solve_arkit,
@@ -74,6 +76,8 @@ __all__ = [
     "tukey_weights",
     "solve_arkit",
     "fit_arkit_to_scan",
+    "EyeRims",
+    "eye_rim_motion",
     "landmark_motion",
     "ArkitReadout",
     "readout_for_subject",

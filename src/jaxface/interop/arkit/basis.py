@@ -17,8 +17,8 @@ __all__ = ["TRANSFER_VERSION", "ArkitBasis", "ict_transfer_error", "transfer_ict
 
 #: Bumped when :func:`transfer_ict_basis` changes its result; on-disk caches of anything built
 #: from a basis (the ARKit inverse maps) include it in their key. 2: no Multi-PIE menton as the
-#: chin, and the eye/mouth contours kept.
-TRANSFER_VERSION = 2
+#: chin, and the eye/mouth contours kept. 3: the cloning morph is a ridge fit (``reg=1``).
+TRANSFER_VERSION = 3
 
 
 # ------------------------------------------------------------------------------------------
@@ -81,6 +81,7 @@ def transfer_ict_basis(
     max_iterations: int = 3,
     transfer: str = "affine",
     check_contours: bool = False,
+    reg: float = 1.0,
 ) -> ArkitBasis:
     """Clone the ICT ARKit shapes onto a subject's skin (:func:`jaxface.clone.clone_motion`).
 
@@ -102,6 +103,13 @@ def transfer_ict_basis(
             identity (where the true transfer is known), keeping them brings the median
             relative error of the 51 cloned shapes from 38 % to 21 % (``eyeWide`` 67-92 ->
             22-35 %, ``eyeBlink`` 120 -> 45 %, ``jawOpen`` 25 -> 12 %; docs/interop.md).
+        reg: ridge of the cloning morph (:func:`jaxface.clone.fit_source_to_target`). An
+            exact interpolant (``reg=0``) bends to every refinement pair, each a ray hit
+            that is right across the surface but not along it, and slides the lid and lip
+            motion off its place: on the two subjects whose true transfer is known (the ICT
+            identities under the Bosphorus-style neutrals) the median relative error of the
+            51 shapes is 21 / 18 % with ``reg=0`` and 10 / 11 % with ``reg=1``
+            (``eyeBlinkLeft`` 45 / 44 -> 10 / 19 %; docs/interop.md).
 
     Raises:
         DataNotFoundError: no ICT file.
@@ -139,6 +147,7 @@ def transfer_ict_basis(
         max_iterations=max_iterations,
         transfer=transfer,
         check_contours=check_contours,
+        reg=reg,
     )
     full = np.zeros((len(ARKIT_NAMES), len(V), 3))
     full[np.ix_(ids, old)] = res.deltas
@@ -148,7 +157,7 @@ def transfer_ict_basis(
         raise FitError("the cloned ARKit shapes hold NaN/inf; check the subject's landmarks.")
     info = {
         "method": "jaxface.clone.clone_motion of the ICT-FaceKit shapes (landmarks, contours, "
-        f"{max_iterations} refinement iterations)",
+        f"{max_iterations} refinement iterations, ridge {reg:g})",
         "contours_skipped": dict(res.fit.contours_skipped),
         "landmarks": list(res.fit.landmark_names),
         "contours": list(res.fit.contours_used),
@@ -158,17 +167,29 @@ def transfer_ict_basis(
     return ArkitBasis(full, avail, m, str(p), info)
 
 
-def ict_transfer_error(basis: ArkitBasis, vertices, ict_path=None) -> dict[str, float]:
-    """How far a basis cloned onto the ICT neutral face itself is from the ICT shapes.
+def ict_transfer_error(
+    basis: ArkitBasis,
+    vertices,
+    ict_path=None,
+    *,
+    truth_neutral=None,
+    rotation=None,
+) -> dict[str, float]:
+    """How far a basis cloned onto an ICT-FaceKit face is from the ICT shapes themselves.
 
-    When the subject *is* the ICT neutral (a scan of it, or the registered skin of one), the
-    true transfer is known: each basis vertex's closest point on the ICT neutral face carries
-    the ICT shape's own displacement there (barycentric). Per ARKit shape ``k``:
-    ``RMS_i |B_k(x_i) - D_k(x_i)| / RMS_i |D_k(x_i)|`` over the basis's vertices ``i``.
+    When the subject *is* an ICT face (the ICT neutral, or any ICT identity: ICT's expression
+    displacements do not depend on the identity), the true transfer is known: each basis
+    vertex's closest point on the subject's true neutral face carries the ICT shape's own
+    displacement there (barycentric), rotated into the subject's frame. Per ARKit shape
+    ``k``: ``RMS_i |B_k(x_i) - R D_k(x_i)| / RMS_i |R D_k(x_i)|`` over the basis's vertices
+    ``i``.
 
     Args:
-        basis: the cloned basis; vertices: ``(V, 3)`` its skin, mm, in the ICT frame.
+        basis: the cloned basis; vertices: ``(V, 3)`` its skin, mm.
         ict_path: ``ict_face.npz`` (default :func:`default_ict_path`).
+        truth_neutral: ``(9409, 3)`` the subject's true neutral face in the ICT face topology,
+            mm, in the frame of ``vertices`` (default: the ICT neutral, in the ICT frame).
+        rotation: ``(3, 3)`` rotation from the ICT frame to that frame (default identity).
 
     Returns:
         ARKit name -> relative RMS error (0 = exact) for the available shapes.
@@ -187,14 +208,21 @@ def ict_transfer_error(basis: ArkitBasis, vertices, ict_path=None) -> dict[str, 
         ict.expression_names, ict.expression_deltas[:, :FACE_VERTEX_COUNT]
     )
     tris = np.asarray(ict.skin.triangles)
+    surface = np.asarray(ict.skin.vertices if truth_neutral is None else truth_neutral, float)
+    if surface.shape != (FACE_VERTEX_COUNT, 3):
+        raise FitError(
+            f"truth_neutral must be ({FACE_VERTEX_COUNT}, 3) in the ICT face topology, got "
+            f"{surface.shape}."
+        )
+    R = np.eye(3) if rotation is None else np.asarray(rotation, np.float64).reshape(3, 3)
     m = basis.mask
-    sp, _ = TriMesh(np.asarray(ict.skin.vertices), tris, validate=False).closest_points(
+    sp, _ = TriMesh(surface, tris, validate=False).closest_points(
         np.asarray(vertices, np.float64)[m]
     )
     bary, corners = np.asarray(sp.bary), tris[np.asarray(sp.tri)]
     out = {}
     for k in np.flatnonzero(avail & basis.available):
-        true = np.einsum("pj,pjd->pd", bary, deltas[k][corners])
+        true = np.einsum("pj,pjd->pd", bary, deltas[k][corners]) @ R.T
         rms = float(np.sqrt(np.mean(np.sum(true**2, -1))))
         err = float(np.sqrt(np.mean(np.sum((basis.deltas[k][m] - true) ** 2, -1))))
         out[ARKIT_NAMES[k]] = err / max(rms, 1e-12)
