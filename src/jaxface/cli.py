@@ -38,6 +38,7 @@ from rich.console import Console
 from rich.table import Table
 
 from . import __version__
+from .commands.options import check_out_dir_option
 
 __all__ = [
     "app",
@@ -254,19 +255,6 @@ def _root(
 
 
 # ----------------------------------------------------------------------------- demo
-def _check_out_dir(out: Path) -> Path:
-    """``--out`` callback: the folder exists or can be created (a usage error, exit 2, with
-    the reason otherwise: a parent that is a file, no permission). Nothing is created here;
-    the command creates the folder when it writes."""
-    from .atomic import check_out_dir
-    from .errors import OutputError
-
-    try:
-        return check_out_dir(out)
-    except OutputError as e:
-        raise typer.BadParameter(str(e), param_hint="'--out'") from None
-
-
 @app.command(epilog=_EPILOG)
 @handle_errors
 def demo(
@@ -275,7 +263,7 @@ def demo(
         "--out",
         "-o",
         help="Output folder (created if missing).",
-        callback=_check_out_dir,
+        callback=check_out_dir_option,
         file_okay=False,
         dir_okay=True,
         writable=True,

@@ -143,7 +143,8 @@ def collect_targets(items: list[Path], exclude: tuple[Path, ...] = ()) -> list[P
 
 def register(app: typer.Typer) -> None:
     """Add ``jaxface clone`` to ``app``."""
-    from ..cli import _EPILOG, _check_out_dir, console, handle_errors, status_steps
+    from ..cli import _EPILOG, console, handle_errors, status_steps
+    from . import options
 
     @app.command(epilog=_EPILOG)
     @handle_errors
@@ -162,14 +163,7 @@ def register(app: typer.Typer) -> None:
         target: Path = typer.Option(
             ..., "--target", "-T", help="Target neutral face (.ply/.obj, or a .bnt range scan)."
         ),
-        out: Path = typer.Option(
-            ...,
-            "--out",
-            "-o",
-            file_okay=False,
-            callback=_check_out_dir,
-            help="Output folder (created if missing).",
-        ),
+        out: Path = options.out_dir(),
         source_landmarks: Path | None = typer.Option(  # noqa: UP007
             None, "--source-landmarks", help="Source .lm3 (default: beside the source neutral)."
         ),

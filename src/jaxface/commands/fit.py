@@ -275,7 +275,8 @@ class RestartWhen(str, Enum):
 
 def register(app: typer.Typer) -> None:
     """Add ``jaxface fit`` to ``app``."""
-    from ..cli import _EPILOG, _check_out_dir, console, handle_errors
+    from ..cli import _EPILOG, console, handle_errors
+    from . import options
 
     @app.command(epilog=_EPILOG)
     @handle_errors
@@ -286,14 +287,7 @@ def register(app: typer.Typer) -> None:
         scan: List[Path] = typer.Option(  # noqa: UP006
             ..., "--scan", "-s", help="Expression scan(s) of the same subject; repeat for a batch."
         ),
-        out: Path = typer.Option(
-            ...,
-            "--out",
-            "-o",
-            file_okay=False,
-            callback=_check_out_dir,
-            help="Output folder (created if missing).",
-        ),
+        out: Path = options.out_dir(),
         neutral_landmarks: Path | None = typer.Option(  # noqa: UP007
             None, "--neutral-landmarks", help="Neutral .lm3 (default: beside the neutral scan)."
         ),
@@ -302,21 +296,10 @@ def register(app: typer.Typer) -> None:
             "--scan-landmarks",
             help="Scan .lm3, one per --scan in the same order (default: beside each scan).",
         ),
-        template: Path | None = typer.Option(  # noqa: UP007
-            None,
-            "--template",
-            help="Template skin to register (.ply/.obj, mm; default: the built-in head).",
-        ),
-        template_landmarks: Path | None = typer.Option(  # noqa: UP007
-            None, "--template-landmarks", help="Landmarks of --template (.lm3; default: beside it)."
-        ),
-        backend: str = typer.Option("pbd", "--backend", help="Simulation backend: pbd or ltw."),
-        landmarks: str = typer.Option(
-            "file",
-            "--landmarks",
-            help="'file': the .lm3 given or beside each scan, detected when there is none; "
-            "'auto': detect for every scan without an explicit --*-landmarks file.",
-        ),
+        template: Path | None = options.template(),  # noqa: UP007
+        template_landmarks: Path | None = options.template_landmarks(),  # noqa: UP007
+        backend: str = options.backend(),
+        landmarks: str = options.landmarks_mode(),
         pictures: bool = typer.Option(
             False, "--pictures", help="Also write a before/after picture per scan."
         ),
@@ -388,14 +371,8 @@ def register(app: typer.Typer) -> None:
             min=1,
             help="Scans fitted together (one after the other on the CPU, one vmap on a GPU); default all.",
         ),
-        ict: Path | None = typer.Option(  # noqa: UP007
-            None,
-            "--ict",
-            help="ICT-FaceKit ict_face.npz for the ARKit-52 coefficients (key 'arkit'; default "
-            "$JAXFACE_ICT; without it the JSON says why "
-            "'arkit' is null).",
-        ),
-        no_arkit: bool = typer.Option(False, "--no-arkit", help="Skip the ARKit readout."),
+        ict: Path | None = options.ict(),  # noqa: UP007
+        no_arkit: bool = options.no_arkit(),
         subject_cache: str = typer.Option(
             "default",
             "--subject-cache",

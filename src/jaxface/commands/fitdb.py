@@ -74,6 +74,7 @@ def _print_summary(console, directory: Path) -> None:
 def register(app: typer.Typer) -> None:
     """Add ``jaxface fit-db`` to ``app``."""
     from ..cli import _EPILOG, console, handle_errors
+    from . import options
 
     @app.command("fit-db", epilog=_EPILOG)
     @handle_errors
@@ -134,23 +135,12 @@ def register(app: typer.Typer) -> None:
             help="Runs of a subject again after its worker process died; then its scans are "
             "failed rows.",
         ),
-        template: Path | None = typer.Option(  # noqa: UP007
-            None, "--template", help="Template skin (.ply/.obj, mm; default: the built-in head)."
-        ),
-        template_landmarks: Path | None = typer.Option(  # noqa: UP007
-            None, "--template-landmarks", help="Landmarks of --template (.lm3)."
-        ),
-        backend: str = typer.Option("pbd", "--backend", help="Simulation backend: pbd or ltw."),
-        landmarks: str = typer.Option(
-            "file",
-            "--landmarks",
-            help="As jaxface fit: 'file' (the .lm3 beside each scan, detected when there is "
-            "none) or 'auto' (detect for every scan).",
-        ),
-        ict: Path | None = typer.Option(  # noqa: UP007
-            None, "--ict", help="As jaxface fit: ict_face.npz for the ARKit-52 readout."
-        ),
-        no_arkit: bool = typer.Option(False, "--no-arkit", help="Skip the ARKit readout."),
+        template: Path | None = options.template(),  # noqa: UP007
+        template_landmarks: Path | None = options.template_landmarks(),  # noqa: UP007
+        backend: str = options.backend(),
+        landmarks: str = options.landmarks_mode(),
+        ict: Path | None = options.ict(),  # noqa: UP007
+        no_arkit: bool = options.no_arkit(),
         pictures: bool = typer.Option(False, "--pictures", help="Also write a picture per scan."),
         points: int = typer.Option(1000, "--points", min=100, help="Scan points per fit."),
         motion_fraction: float = typer.Option(

@@ -221,19 +221,13 @@ def parse_sweeps(text: str) -> tuple[int, int, float]:
 
 def register(app: typer.Typer) -> None:
     """Add ``jaxface synth`` to ``app``."""
-    from ..cli import _EPILOG, _check_out_dir, console, handle_errors, status_steps
+    from ..cli import _EPILOG, console, handle_errors, status_steps
+    from . import options
 
     @app.command(epilog=_EPILOG)
     @handle_errors
     def synth(
-        out: Path = typer.Option(
-            ...,
-            "--out",
-            "-o",
-            file_okay=False,
-            callback=_check_out_dir,
-            help="Output folder (created if missing).",
-        ),
+        out: Path = options.out_dir(),
         emotion: List[str] = typer.Option(  # noqa: UP006
             [],
             "--emotion",

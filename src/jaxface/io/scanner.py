@@ -34,7 +34,7 @@ from typing import Literal, overload
 
 import numpy as np
 
-from ..closest import SurfaceIndex
+from ..closest import SurfaceIndex, mesh_arrays
 from ..errors import MeshError, ScanFormatError
 from ..landmarks import Landmarks
 from .bosphorus import Scan
@@ -143,31 +143,9 @@ def grid_axes(lo: float, hi: float, resolution: float) -> np.ndarray:
 
 
 def _as_arrays(mesh) -> tuple[np.ndarray, np.ndarray]:
-    if hasattr(mesh, "vertices") and hasattr(mesh, "triangles"):
-        v, t = mesh.vertices, mesh.triangles
-    elif hasattr(mesh, "vertices") and hasattr(mesh, "faces"):  # trimesh.Trimesh
-        v, t = mesh.vertices, mesh.faces
-    elif isinstance(mesh, (tuple, list)) and len(mesh) == 2:
-        v, t = mesh
-    else:
-        raise MeshError(
-            f"cannot scan an object of type {type(mesh).__name__}: give a TriMesh, a "
-            f"trimesh.Trimesh or a (vertices (V, 3) mm, triangles (F, 3)) pair.",
-            problem="bad_type",
-        )
-    v = np.asarray(v, dtype=np.float64)
-    t = np.asarray(t)
-    if v.ndim != 2 or v.shape[1] != 3 or t.ndim != 2 or t.shape[1] != 3:
-        raise MeshError(
-            f"vertices must be (V, 3) and triangles (F, 3); got {v.shape} and {t.shape}.",
-            problem="shape",
-        )
-    t = t.astype(np.int64)
-    if t.size and (t.min() < 0 or t.max() >= len(v)):
-        raise MeshError(
-            f"triangle indices must lie in 0..{len(v) - 1}; found {int(t.min())}..{int(t.max())}.",
-            problem="bad_indices",
-        )
+    """The mesh's arrays (:func:`jaxface.closest.mesh_arrays`), refusing NaN/inf on any vertex
+    a triangle uses (mm)."""
+    v, t = mesh_arrays(mesh)
     used = np.unique(t)
     bad = used[~np.all(np.isfinite(v[used]), axis=1)]
     if bad.size:
