@@ -62,7 +62,13 @@ def fitted():
     neutral = _load(root, "bs900_N_N_0")
     subject = prepare_subject(neutral, options=SubjectOptions(levels=2, pitch_knots=6))
     scans = [_load(root, s) for s in STEMS]
-    fits = fit_expressions(subject, scans, options=FitOptions(**FAST), noise_floor=True)
+    fits = fit_expressions(
+        subject,
+        scans,
+        options=FitOptions(**FAST),
+        noise_floor=True,
+        arkit=shared_path("data", "ict", "ict_face.npz"),
+    )
     return root, subject, dict(zip(STEMS, fits))
 
 
@@ -93,6 +99,29 @@ def test_same_subject_expression_passes(fitted):
     top = r.strongest_aus(1, bilateral_only=True)[0][0]
     assert top not in q.aus_within_noise
     assert q.au_intensities_above_noise[top] == r.au_intensities[top]
+
+
+def test_fit_reads_arkit_from_the_scan(fitted, tmp_path):
+    """The fit's ARKit readout names the smile's recipe (ICT mouthSmile_L/R, cheekSquint_L/R)
+    within the top (n + 2) = 6 of the 52, from the scan itself; the fitted skin's readout is
+    beside it in the detail, and the JSON carries both."""
+    from jaxface.interop.arkit import ARKIT_NAMES
+
+    _, _, fits = fitted
+    r = fits["bs900_E_HAPPY_0"]
+    assert r.arkit is not None and set(r.arkit) == set(ARKIT_NAMES), r.arkit_detail
+    assert all(0.0 <= v <= 1.0 for v in r.arkit.values())
+    order = sorted(r.arkit, key=lambda k: -r.arkit[k])
+    recipe = ("mouthSmileLeft", "mouthSmileRight", "cheekSquintLeft", "cheekSquintRight")
+    ranks = {k: order.index(k) + 1 for k in recipe}
+    print("arkit ranks", ranks, r.arkit_detail["fitted_skin"])
+    assert max(ranks.values()) <= 6, ranks
+    assert "eye holes" in r.arkit_detail["method"]
+    skin = r.arkit_detail["fitted_skin"]["coefficients"]
+    assert set(skin) == set(ARKIT_NAMES) and skin["mouthSmileLeft"] > 0.3
+    doc = json.loads(r.write(tmp_path)["json"].read_text())
+    assert doc["arkit"] == pytest.approx(r.arkit)
+    assert doc["arkit_detail"]["fitted_skin"]["coefficients"] == pytest.approx(skin)
 
 
 def test_cross_subject_pair_warned(fitted):

@@ -16,6 +16,7 @@ from jaxface.interop.arkit import (
     ICT_TO_ARKIT,
     ICT_UNUSED,
     ArkitBasis,
+    ArkitReadout,
     arkit_deltas_from_ict,
     arkit_from_ict_name,
     arkit_weights_from_ict,
@@ -271,6 +272,20 @@ def test_eye_rims_see_a_lid_sliding_across_the_eye():
     assert with_rims.coefficients["eyeWideLeft"] == pytest.approx(1.0, abs=0.15)
     assert without.coefficients["eyeWideLeft"] < 0.05
     assert max(v for n, v in with_rims.coefficients.items() if n != "eyeWideLeft") < 0.05
+
+    # the fit's readout reads the scan the same way, and the fitted skin beside it
+    ro = ArkitReadout(V, basis, l1=0.001)
+    coeffs, detail = ro.from_scan(
+        scan, neutral, ident, F, (), np.zeros(0, int), np.zeros((0, 3)), V
+    )
+    assert coeffs is not None and coeffs["eyeWideLeft"] == pytest.approx(
+        with_rims.coefficients["eyeWideLeft"], abs=1e-9
+    )
+    assert "left" in detail["method"] and detail["fitted_skin"]["coefficients"]["eyeWideLeft"] == 0
+    assert ArkitReadout(V, reason="no data").from_scan(scan, neutral, ident, F, (), [], []) == (
+        None,
+        {"available": False, "reason": "no data"},
+    )
 
     # the neutral against itself: no motion at all
     still = eye_rim_motion(V, F, neutral, neutral, ident)

@@ -311,7 +311,20 @@ def fit_expressions(
                 fitted_landmarks=subject.landmarks_on(mesh.vertices),
                 scan_landmarks=s.landmarks,
             )
-        ak, ak_detail = readout(f.skin) if readout is not None else (None, {})
+        ak, ak_detail = (
+            readout.from_scan(
+                s,
+                subject.neutral,
+                al.transform,
+                tris,
+                subject.landmark_names,
+                subject.landmark_tri,
+                subject.landmark_bary,
+                fitted_skin=f.skin,
+            )
+            if readout is not None
+            else (None, {})
+        )
         je = f.jaw_effective
         aus = au_intensities(
             f.activations, subject.muscle_names, JawPose(float(je[0]), float(je[1]), float(je[2]))

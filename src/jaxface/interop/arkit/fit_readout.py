@@ -11,7 +11,7 @@ import numpy as np
 from ...errors import FitError
 from .basis import ArkitBasis, transfer_ict_basis
 from .ict import default_ict_path
-from .readout import solve_arkit
+from .readout import eye_rim_motion, fit_arkit_to_scan, solve_arkit
 
 __all__ = ["ArkitReadout", "readout_for_subject"]
 
@@ -20,12 +20,14 @@ __all__ = ["ArkitReadout", "readout_for_subject"]
 # the readout of a fit (used by jaxface.fit.pipeline)
 # ------------------------------------------------------------------------------------------
 class ArkitReadout:
-    """Reads ARKit coefficients from fitted skins of one subject (:func:`solve_arkit`), or
-    says why it cannot (no ICT data, a failed transfer): it never makes numbers up.
+    """Reads ARKit coefficients for the fits of one subject, or says why it cannot (no ICT
+    data, a failed transfer): it never makes numbers up.
 
-    Call it with a fitted skin ``(V, 3)`` mm (the rig's frame and topology): returns
-    ``(coefficients dict or None, detail dict)``; ``detail`` holds ``available`` and either
-    the :meth:`ArkitSolution.to_dict` fields with ``source``/``method``, or ``reason``.
+    Call it with a fitted skin ``(V, 3)`` mm (the rig's frame and topology) to read the
+    fitted skin motion (:func:`solve_arkit`), or use :meth:`from_scan` to read the scan
+    itself (:func:`fit_arkit_to_scan`). Both return ``(coefficients dict or None, detail
+    dict)``; ``detail`` holds ``available`` and either the :meth:`ArkitSolution.to_dict`
+    fields with ``source``/``method``, or ``reason``.
     """
 
     def __init__(self, rest, basis: ArkitBasis | None = None, reason: str = "", l1: float = 0.01):
@@ -52,6 +54,82 @@ class ArkitReadout:
             "transfer": dict(self.basis.info),
             "sides": "Left = the subject's own left (+x), as ICT's _L",
         }
+
+    def from_scan(
+        self,
+        scan,
+        neutral,
+        transform,
+        triangles,
+        landmark_names,
+        landmark_tri,
+        landmark_bary,
+        fitted_skin=None,
+    ) -> tuple[dict | None, dict]:
+        """ARKit coefficients read from the expression scan itself: point-to-plane ICP of the
+        cloned shapes to the scan, with the landmarks' motion and the eye rims
+        (:func:`fit_arkit_to_scan`, :func:`eye_rim_motion`). The rig cannot make every
+        expression (a cheek that rises into the lower lid, a lid sliding across the eye), so
+        the scan says more than the fitted skin; with ``fitted_skin`` the detail also holds
+        the readout of the fitted skin motion (``fitted_skin``), what the rig made.
+
+        Args:
+            scan, neutral: the expression and neutral :class:`jaxface.io.Scan` (landmarks
+                mm); transform: maps ``scan`` into the neutral's (the rig's) frame.
+            triangles: ``(F, 3)`` the rig skin's; landmark_names, landmark_tri,
+                landmark_bary: the rig's landmarks on it.
+            fitted_skin: ``(V, 3)`` the fitted skin (mm, rig frame), or None.
+        """
+        if self.basis is None:
+            return None, {"available": False, "reason": self.reason}
+        tris = np.asarray(triangles, np.int64)
+        qn = dict(zip(neutral.landmarks.names, np.asarray(neutral.landmarks.positions)))
+        qe = dict(zip(scan.landmarks.names, np.asarray(scan.landmarks.positions)))
+        keep = [i for i, n in enumerate(landmark_names) if n in qn and n in qe]
+        lmk = None
+        if keep:
+            mot = np.stack(
+                [
+                    transform.apply(qe[landmark_names[i]][None])[0] - qn[landmark_names[i]]
+                    for i in keep
+                ]
+            )
+            lmk = (np.asarray(landmark_tri)[keep], np.asarray(landmark_bary)[keep], mot)
+        try:
+            rims = eye_rim_motion(self.rest, tris, neutral, scan, transform, mask=self.basis.mask)
+            v, t, _ = scan.mesh_arrays()
+            sol = fit_arkit_to_scan(
+                self.basis,
+                self.rest,
+                tris,
+                transform.apply(np.asarray(v, np.float64)),
+                t,
+                landmarks=lmk,
+                rims=rims,
+                l1=self.l1,
+            )
+        except FitError as e:
+            return None, {"available": False, "reason": str(e)}
+        detail = {
+            "available": True,
+            **sol.to_dict(),
+            "source": self.basis.source,
+            "method": "bounded L1-weighted least squares (0 <= c <= 1, l1 "
+            f"{self.l1:g} mm per mm of each shape's RMS motion) of the ICT-FaceKit ARKit "
+            "shapes cloned onto the subject (jaxface.interop.arkit) to the expression scan: "
+            "point-to-plane ICP, Tukey-weighted, with the landmarks' motion "
+            f"({len(keep)} labels) and the eye holes' rims ({', '.join(rims.sides) or 'none'})",
+            "transfer": dict(self.basis.info),
+            "sides": "Left = the subject's own left (+x), as ICT's _L",
+        }
+        if fitted_skin is not None:
+            coeffs, fd = self(fitted_skin)
+            detail["fitted_skin"] = {
+                "coefficients": coeffs,
+                "residual_mm": fd.get("residual_mm"),
+                "method": "the same shapes read from the fitted skin motion: what the rig made",
+            }
+        return dict(sol.coefficients), detail
 
 
 _READOUTS: dict[tuple[int, str], ArkitReadout] = {}
