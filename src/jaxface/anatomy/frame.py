@@ -50,6 +50,8 @@ from ..landmarks import FACE_LABELS
 __all__ = [
     "FaceFrame",
     "face_frame",
+    "face_axes",
+    "AXIS_LABELS",
     "REQUIRED_LABELS",
     "REFERENCE_BIOCULAR_MM",
     "REFERENCE_EYE_TO_CHIN_MM",
@@ -200,28 +202,41 @@ class FaceFrame:
         return 0.5 * (self.points["Upper lip inner middle"] + self.points["Lower lip inner middle"])
 
 
-def face_frame(landmarks) -> FaceFrame:
-    """Build the :class:`FaceFrame` of a face from its Bosphorus landmarks.
+#: The landmarks :func:`face_axes` needs.
+AXIS_LABELS: tuple[str, ...] = (
+    "Outer left eye corner",
+    "Inner left eye corner",
+    "Outer right eye corner",
+    "Inner right eye corner",
+    "Left mouth corner",
+    "Right mouth corner",
+    "Nose tip",
+)
+
+
+def face_axes(landmarks) -> np.ndarray:
+    """The face's own directions in the landmarks' frame (unit rows, dimensionless).
+
+    ``x`` toward the subject's left (from the right to the left eye corners), ``y`` up (the
+    mouth-to-eyes direction, orthogonalised against ``x`` and tilted back about ``x`` by
+    :data:`REFERENCE_TILT_DEG`, its angle to the vertical on the reference face), ``z = x cross
+    y`` the direction the face looks.
 
     Args:
-        landmarks: a :class:`jaxface.landmarks.Landmarks` (or any mapping ``name -> (3,)`` mm)
-            with at least :data:`REQUIRED_LABELS`; ear lobes are optional.
+        landmarks: :class:`jaxface.landmarks.Landmarks` or a mapping ``name -> (3,)`` mm with
+            :data:`AXIS_LABELS`.
 
     Returns:
-        the frame (NumPy).
+        ``(3, 3)``: rows x, y, z.
 
     Raises:
-        LandmarkError: a required landmark is missing (all missing names are listed), or the
-            landmarks are mirrored (the left eye at -x) or degenerate.
+        LandmarkError: a label is missing, the landmarks are degenerate, or mirrored (the
+            nose tip behind the eyes).
     """
-    missing = [n for n in REQUIRED_LABELS if _try_get(landmarks, n) is None]
+    missing = [n for n in AXIS_LABELS if _try_get(landmarks, n) is None]
     if missing:
-        raise LandmarkError(
-            f"the anatomical model needs the 22 Bosphorus face landmarks; missing: {missing}. "
-            "Add them to the landmark file (labels are matched case-insensitively).",
-            missing=missing,
-        )
-    pts = {n: _get(landmarks, n) for n in REQUIRED_LABELS}
+        raise LandmarkError(f"the face's axes need the landmarks {missing}.", missing=missing)
+    pts = {n: _get(landmarks, n) for n in AXIS_LABELS}
     lo, li = pts["Outer left eye corner"], pts["Inner left eye corner"]
     ro, ri = pts["Outer right eye corner"], pts["Inner right eye corner"]
     xdir = (lo - ro) + (li - ri)
@@ -249,7 +264,36 @@ def face_frame(landmarks) -> FaceFrame:
             "and the eyes above the mouth, the nose tip points backwards. Check that 'left' "
             "landmarks are on the subject's left (+x) and that the face looks along +z."
         )
-    axes = np.stack([x, y, z])
+    return np.stack([x, y, z])
+
+
+def face_frame(landmarks) -> FaceFrame:
+    """Build the :class:`FaceFrame` of a face from its Bosphorus landmarks.
+
+    Args:
+        landmarks: a :class:`jaxface.landmarks.Landmarks` (or any mapping ``name -> (3,)`` mm)
+            with at least :data:`REQUIRED_LABELS`; ear lobes are optional.
+
+    Returns:
+        the frame (NumPy).
+
+    Raises:
+        LandmarkError: a required landmark is missing (all missing names are listed), or the
+            landmarks are mirrored (the left eye at -x) or degenerate.
+    """
+    missing = [n for n in REQUIRED_LABELS if _try_get(landmarks, n) is None]
+    if missing:
+        raise LandmarkError(
+            f"the anatomical model needs the 22 Bosphorus face landmarks; missing: {missing}. "
+            "Add them to the landmark file (labels are matched case-insensitively).",
+            missing=missing,
+        )
+    pts = {n: _get(landmarks, n) for n in REQUIRED_LABELS}
+    axes = face_axes(pts)
+    x, y = axes[0], axes[1]
+    lo, li = pts["Outer left eye corner"], pts["Inner left eye corner"]
+    ro, ri = pts["Outer right eye corner"], pts["Inner right eye corner"]
+    eye_mid = 0.25 * (lo + li + ro + ri)
     # origin: eye centre moved onto the mid-sagittal plane of the landmarks
     mids = [
         0.5 * (pts[a] + pts[b])

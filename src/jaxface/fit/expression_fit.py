@@ -11,7 +11,9 @@ from typing import Any
 
 import numpy as np
 
+from ..anatomy.frame import face_axes
 from ..atomic import ensure_out_dir, write_json_atomic
+from ..errors import LandmarkError
 from ..facs import intensity_letters
 from ..mesh import save_mesh
 from ..render import Layer, draw, save_figure
@@ -19,6 +21,10 @@ from .metrics import SurfaceIndex
 from .options import FitOptions
 from .params import rigid_numpy
 from .point_fit import PointFit
+
+#: The largest angle (degrees) between the face's measured left / up / forward and +x / +y /
+#: +z for the JSON to call the scan's frame the project's convention.
+FRAME_TOLERANCE_DEG = 30.0
 
 __all__ = ["ExpressionFit", "JSON_KEYS"]
 
@@ -150,14 +156,43 @@ class ExpressionFit:
         }
 
     def frame_dict(self) -> dict:
-        return {
+        """The input scan's frame, as measured: the face's left, up and forward directions in
+        the scan's coordinates from its landmarks (:func:`jaxface.anatomy.frame.face_axes`),
+        and whether they follow the project's convention (each within 30 degrees of +x, +y,
+        +z). The fit runs in the scan's frame whatever it is; only the words change."""
+        out: dict[str, Any] = {
             "name": "scan",
-            "description": "the input scan's own coordinate frame (the .fitted.ply and every landmark "
-            "and metric are in it)",
+            "description": "the input scan's own coordinate frame (the .fitted.ply and every "
+            "landmark and metric are in it)",
             "scan": str(getattr(self.scan, "path", "") or self.stem),
             "units": "mm",
-            "axes": "+y up, +z toward the viewer (the face looks along +z), subject's left +x",
         }
+        try:
+            axes = face_axes(self.scan.landmarks)
+        except LandmarkError as e:
+            out["axes"] = f"not measured ({e})"
+            out["face_axes"] = None
+            out["conventional"] = None
+            return out
+        angles = np.degrees(np.arccos(np.clip(np.diag(axes), -1.0, 1.0)))
+        conventional = bool(np.all(angles <= FRAME_TOLERANCE_DEG))
+        names = ("left", "up", "forward")
+        out["face_axes"] = {n: [round(float(v), 4) for v in a] for n, a in zip(names, axes)}
+        out["angles_to_convention_deg"] = {n: round(float(a), 1) for n, a in zip(names, angles)}
+        out["conventional"] = conventional
+        if conventional:
+            out["axes"] = (
+                "+y up, +z toward the viewer (the face looks along +z), subject's left +x "
+                f"(measured from the landmarks: within {float(angles.max()):.0f} degrees)"
+            )
+        else:
+            v = out["face_axes"]
+            out["axes"] = (
+                "not the convention (+y up, +z forward, subject's left +x): in this scan's "
+                f"frame the face's up is {tuple(v['up'])}, it looks along {tuple(v['forward'])} "
+                f"and its left is {tuple(v['left'])} (from the landmarks)"
+            )
+        return out
 
     def to_dict(self) -> dict:
         """The JSON contract of ``jaxface fit`` (mm, degrees)."""
