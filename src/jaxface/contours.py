@@ -436,12 +436,15 @@ def match_arcs(
     return ids[first], pts[first]
 
 
-def closest_on_polyline(points: np.ndarray, polyline: np.ndarray) -> np.ndarray:
-    """``(k, 3)`` closest points (mm) on a ``(m, 3)`` polyline to ``(k, 3)`` query points."""
+def closest_on_polyline(points: np.ndarray, polyline: np.ndarray, *, tangents: bool = False):
+    """``(k, 3)`` closest points (mm) on a ``(m, 3)`` polyline to ``(k, 3)`` query points; with
+    ``tangents=True`` also the ``(k, 3)`` unit direction of the segment each lies on (zero for
+    a one-point polyline)."""
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     a = np.asarray(polyline, dtype=np.float64)
     if a.shape[0] == 1:
-        return np.repeat(a, p.shape[0], axis=0)
+        c = np.repeat(a, p.shape[0], axis=0)
+        return (c, np.zeros_like(c)) if tangents else c
     s0, s1 = a[:-1], a[1:]
     e = s1 - s0
     ee = np.einsum("ij,ij->i", e, e)
@@ -449,7 +452,11 @@ def closest_on_polyline(points: np.ndarray, polyline: np.ndarray) -> np.ndarray:
     t = np.clip(np.einsum("kij,ij->ki", w, e) / np.where(ee > 0, ee, 1.0)[None], 0.0, 1.0)
     c = s0[None] + t[..., None] * e[None]
     best = np.argmin(np.einsum("kij,kij->ki", p[:, None] - c, p[:, None] - c), axis=1)
-    return c[np.arange(p.shape[0]), best]
+    out = c[np.arange(p.shape[0]), best]
+    if not tangents:
+        return out
+    d = e[best]
+    return out, d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
 
 
 def match_nearest(

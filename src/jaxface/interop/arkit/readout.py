@@ -9,6 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import lsq_linear
 
+from ...contours import closest_on_polyline
 from ...errors import FitError, LandmarkError
 from .basis import ArkitBasis
 from .names import ARKIT_NAMES
@@ -312,7 +313,7 @@ class EyeRims:
         P = np.zeros((len(q), 3, 3))
         for j, edge in enumerate(self.edges):
             sel = self.side_of == j
-            b, t = _on_polyline(q[sel], edge)
+            b, t = closest_on_polyline(q[sel], edge, tangents=True)
             m[sel] = _circular_mean(b - self.anchors[sel], self.window[j])
             P[sel] = np.eye(3)[None] - t[:, :, None] * t[:, None, :]
         return m, P
@@ -351,20 +352,6 @@ def _circular_mean(values: np.ndarray, half_width: int) -> np.ndarray:
         return values
     k = min(int(half_width), (n - 1) // 2)
     return np.mean([np.roll(values, s, axis=0) for s in range(-k, k + 1)], axis=0)
-
-
-def _on_polyline(points: np.ndarray, polyline: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Closest points on a polyline ``(m, 3)`` to ``(k, 3)`` points and the unit tangent of
-    the segment each lies on."""
-    s0, s1 = polyline[:-1], polyline[1:]
-    e = s1 - s0
-    ee = np.maximum(np.einsum("ij,ij->i", e, e), 1e-18)
-    w = points[:, None, :] - s0[None]
-    t = np.clip(np.einsum("kij,ij->ki", w, e) / ee[None], 0.0, 1.0)
-    c = s0[None] + t[..., None] * e[None]
-    best = np.argmin(np.sum((points[:, None] - c) ** 2, -1), axis=1)
-    k = np.arange(len(points))
-    return c[k, best], e[best] / np.sqrt(ee[best])[:, None]
 
 
 def eye_rim_motion(
@@ -427,7 +414,7 @@ def eye_rim_motion(
         if skin is None or hole0 is None or hole1 is None:
             continue
         ids = skin[:-1]  # the opening in loop order
-        a, _ = _on_polyline(X[ids], nv[hole0])
+        a = closest_on_polyline(X[ids], nv[hole0])
         spacing = float(np.mean(np.linalg.norm(np.diff(X[skin], axis=0), axis=1)))
         verts.append(ids)
         anchors.append(a)
