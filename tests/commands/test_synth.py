@@ -179,3 +179,34 @@ def test_synth_ltw_backend(tmp_path):
     img = imread(out / "backends_emotions.png")
     assert img.shape[0] > 2 * img.shape[1]
     assert (img[..., :3].mean(axis=2) < 0.9).mean() > 0.05
+
+
+@pytest.mark.data
+def test_synth_arkit_drives_the_rig_through_the_inverse_map(tmp_path, monkeypatch):
+    """``jaxface synth --arkit``: a left smile with the jaw half open drives the left smile
+    muscles more than the right ones and opens the jaw; the inverse map is cached as JSON
+    (``$XDG_CACHE_HOME/jaxface/arkit``, keyed as ``inverse_map_cached`` says)."""
+    from jaxface.cli import main
+    from jaxface.testing import shared_path
+
+    shared_path("data", "ict", "ict_face.npz")  # skip (or fail in CI) without the ICT data
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    args = ["synth", "--arkit", "mouthSmileLeft=1,jawOpen=0.5", "--no-pictures", "--quiet"]
+    assert main([*args, "--out", str(tmp_path / "a")]) == 0
+    cached = list((tmp_path / "cache" / "jaxface" / "arkit").glob("inverse_*.json"))
+    assert len(cached) == 1
+    (doc_path,) = (tmp_path / "a").glob("*.json")
+    doc = json.loads(doc_path.read_text())
+    act = doc["activations"]
+    left = act["zygomaticus_major_L"] + act["levator_anguli_oris_L"] + act["risorius_L"]
+    right = act["zygomaticus_major_R"] + act["levator_anguli_oris_R"] + act["risorius_R"]
+    assert left > 0.2 and left > 2 * right, act
+    assert doc["jaw"]["pitch_deg"] > 2.0
+    # the cached map is whole and says how far each shape is from what the rig can make
+    from jaxface.interop.arkit import ARKIT_NAMES
+    from jaxface.interop.inverse import InverseMap
+
+    imap = InverseMap.from_json(json.loads(cached[0].read_text()))
+    assert cached[0].name == f"inverse_{imap.key}.json"
+    k = ARKIT_NAMES.index("mouthSmileLeft")
+    assert 0 < imap.misfit_mm[k] < imap.shape_rms_mm[k]
