@@ -11,7 +11,7 @@ import numpy as np
 from ...errors import FitError
 from .basis import ArkitBasis, transfer_ict_basis
 from .ict import default_ict_path
-from .readout import eye_rim_motion, fit_arkit_to_scan, solve_arkit
+from .readout import attached_landmark_motion, eye_rim_motion, fit_arkit_to_scan, solve_arkit
 
 __all__ = ["ArkitReadout", "readout_for_subject"]
 
@@ -43,15 +43,18 @@ class ArkitReadout:
             sol = solve_arkit(self.basis, np.asarray(skin, np.float64) - self.rest, l1=self.l1)
         except FitError as e:
             return None, {"available": False, "reason": str(e)}
-        return dict(sol.coefficients), {
+        return dict(sol.coefficients), self._detail(sol, "the fitted skin motion, Tukey-weighted")
+
+    def _detail(self, sol, data: str) -> dict:
+        """The ``detail`` of an available readout of ``data`` (what the shapes were fitted to)."""
+        return {
             "available": True,
             **sol.to_dict(),
-            "source": self.basis.source,
+            "source": self.basis.source if self.basis is not None else "",
             "method": "bounded L1-weighted least squares (0 <= c <= 1, l1 "
             f"{self.l1:g} mm per mm of each shape's RMS motion) of the ICT-FaceKit ARKit "
-            "shapes cloned onto the subject "
-            "(jaxface.interop.arkit) to the fitted skin motion, Tukey-weighted",
-            "transfer": dict(self.basis.info),
+            f"shapes cloned onto the subject (jaxface.interop.arkit) to {data}",
+            "transfer": dict(self.basis.info) if self.basis is not None else {},
             "sides": "Left = the subject's own left (+x), as ICT's _L",
         }
 
@@ -83,18 +86,9 @@ class ArkitReadout:
         if self.basis is None:
             return None, {"available": False, "reason": self.reason}
         tris = np.asarray(triangles, np.int64)
-        qn = dict(zip(neutral.landmarks.names, np.asarray(neutral.landmarks.positions)))
-        qe = dict(zip(scan.landmarks.names, np.asarray(scan.landmarks.positions)))
-        keep = [i for i, n in enumerate(landmark_names) if n in qn and n in qe]
-        lmk = None
-        if keep:
-            mot = np.stack(
-                [
-                    transform.apply(qe[landmark_names[i]][None])[0] - qn[landmark_names[i]]
-                    for i in keep
-                ]
-            )
-            lmk = (np.asarray(landmark_tri)[keep], np.asarray(landmark_bary)[keep], mot)
+        lmk = attached_landmark_motion(
+            landmark_names, landmark_tri, landmark_bary, neutral, scan, transform
+        )
         try:
             rims = eye_rim_motion(self.rest, tris, neutral, scan, transform, mask=self.basis.mask)
             v, t, _ = scan.mesh_arrays()
@@ -110,18 +104,12 @@ class ArkitReadout:
             )
         except FitError as e:
             return None, {"available": False, "reason": str(e)}
-        detail = {
-            "available": True,
-            **sol.to_dict(),
-            "source": self.basis.source,
-            "method": "bounded L1-weighted least squares (0 <= c <= 1, l1 "
-            f"{self.l1:g} mm per mm of each shape's RMS motion) of the ICT-FaceKit ARKit "
-            "shapes cloned onto the subject (jaxface.interop.arkit) to the expression scan: "
-            "point-to-plane ICP, Tukey-weighted, with the landmarks' motion "
-            f"({len(keep)} labels) and the eye holes' rims ({', '.join(rims.sides) or 'none'})",
-            "transfer": dict(self.basis.info),
-            "sides": "Left = the subject's own left (+x), as ICT's _L",
-        }
+        n_lm = 0 if lmk is None else len(lmk[0])
+        detail = self._detail(
+            sol,
+            "the expression scan: point-to-plane ICP, Tukey-weighted, with the landmarks' "
+            f"motion ({n_lm} labels) and the eye holes' rims ({', '.join(rims.sides) or 'none'})",
+        )
         if fitted_skin is not None:
             coeffs, fd = self(fitted_skin)
             detail["fitted_skin"] = {

@@ -21,6 +21,7 @@ __all__ = [
     "solve_arkit",
     "fit_arkit_to_scan",
     "landmark_motion",
+    "attached_landmark_motion",
     "EyeRims",
     "eye_rim_motion",
 ]
@@ -260,14 +261,26 @@ def landmark_motion(registration, neutral, scan, transform):
     (``registration.landmark_points``) and their motion ``T(q_scan) - q_neutral`` (mm) for the
     labels present in both scans; ``transform`` maps the scan into the neutral's frame."""
     lp = registration.landmark_points
+    term = attached_landmark_motion(
+        registration.landmarks.names, lp.tri, lp.bary, neutral, scan, transform
+    )
+    if term is None:
+        raise LandmarkError("no landmark label common to the registration and both scans.")
+    return term
+
+
+def attached_landmark_motion(names, tri, bary, neutral, scan, transform):
+    """:func:`landmark_motion` for landmarks attached by ``(tri (L,), bary (L, 3))`` under
+    ``names``: ``(tri, bary, motion (K, 3) mm)`` of the K labels present in both scans, or
+    None when there is none."""
     qn = dict(zip(neutral.landmarks.names, np.asarray(neutral.landmarks.positions)))
     qe = dict(zip(scan.landmarks.names, np.asarray(scan.landmarks.positions)))
-    names = list(registration.landmarks.names)
+    names = list(names)
     keep = [i for i, n in enumerate(names) if n in qn and n in qe]
     if not keep:
-        raise LandmarkError("no landmark label common to the registration and both scans.")
+        return None
     mot = np.stack([transform.apply(qe[names[i]][None])[0] - qn[names[i]] for i in keep])
-    return np.asarray(lp.tri)[keep], np.asarray(lp.bary)[keep], mot
+    return np.asarray(tri)[keep], np.asarray(bary)[keep], mot
 
 
 # ------------------------------------------------------------------------------------------
