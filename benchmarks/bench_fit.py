@@ -30,9 +30,11 @@ Measures (units mm, degrees, seconds):
   other subject's neutral and same-code scan, magnitude fitted to the scan) on the single-AU
   scans it applies to, the ratio B0 / fit, scan-to-fit metrics, solver status and steps, jaw pose, and the AU readout: the
   rank of each AU named by the file's code among the fitted bilateral AUs (and the side for
-  ``LFAU_12L``), by intensity (:func:`jaxface.facs.au_intensities`), by the skin motion each
-  AU accounts for (:func:`jaxface.fit.au_motion.au_skin_motion`, mm) and by the sparse readout
-  (:func:`jaxface.fit.au_motion.au_sparse`: the fewest AUs that reproduce the fit's motion);
+  ``LFAU_12L``), by the fit's intensities (``au_intensities``,
+  :func:`jaxface.fit.au_motion.read_aus`: the fewest AUs that reproduce the fit's motion), by
+  the skin motion each AU accounts for (:func:`jaxface.fit.au_motion.au_skin_motion`, mm) and
+  by the table's inverse of the activations (``au_from_activations``,
+  :func:`jaxface.facs.au_intensities`), with the checks of ``au_checks.py`` for both readouts;
 * the neutral scans: registration error (B0 of ``N_N``) against the truth;
 * time per expression scan: one scan alone (cold: includes compiling the solver; warm: a
   second scan with the compiled solver), the batch (wall time / number of scans), and every
@@ -60,6 +62,8 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+
+from au_checks import au_check, summarise
 
 #: AUs named by each scan code (issue 7: "AU12 for LFAU_12, AU1+2+5+26 for E_SURPRISE")
 CODE_AUS = {
@@ -357,10 +361,19 @@ def bench_subject(
             "au_motion_ranks": _au_ranks(r.au_motion_mm, exp),
             "top_aus_by_motion_mm": r.strongest_aus(6, bilateral_only=True, by="motion"),
             "au12_sides_motion_mm": {k: r.au_motion_mm.get(k) for k in ("AU12L", "AU12R")},
-            "au_sparse_ranks": _au_ranks(r.au_sparse, exp),
-            "top_aus_sparse": r.strongest_aus(6, bilateral_only=True, by="sparse"),
-            "au12_sides_sparse": {k: r.au_sparse.get(k) for k in ("AU12L", "AU12R")},
-            "au_sparse_misfit_mm": r.au_sparse_misfit_mm,
+            "au_activation_ranks": _au_ranks(r.au_from_activations, exp),
+            "top_aus_from_activations": r.strongest_aus(6, bilateral_only=True, by="activations"),
+            "au12_sides_from_activations": {
+                k: r.au_from_activations.get(k) for k in ("AU12L", "AU12R")
+            },
+            "au_readout_misfit_mm": None if r.au_readout is None else r.au_readout.misfit_mm,
+            "letters": r.to_dict()["au_intensity_letters"],
+            "au_check_intensity": au_check(
+                r.au_intensities, [[a] for a in exp], S.response, S.muscle_names
+            ),
+            "au_check_activations": au_check(
+                r.au_from_activations, [[a] for a in exp], S.response, S.muscle_names
+            ),
             "activations": r.activations,
             **_arkit_row(r.arkit, rec.weights),
         }
@@ -694,10 +707,11 @@ def main() -> None:
                 )
             )
             print(
-                f"{'':22s} sparse: {s['au_sparse_ranks']} "
-                f"{[(k, round(v, 2)) for k, v in s['top_aus_sparse'][:4]]} (misfit {s['au_sparse_misfit_mm']:.2f} mm)"
+                f"{'':22s} from the activations: {s['au_activation_ranks']} "
+                f"{[(k, round(v, 2)) for k, v in s['top_aus_from_activations'][:4]]}"
                 + (
-                    f" 12L/12R {s['au12_sides_sparse']['AU12L']:.2f}/{s['au12_sides_sparse']['AU12R']:.2f}"
+                    f" 12L/12R {s['au12_sides_from_activations']['AU12L']:.2f}/"
+                    f"{s['au12_sides_from_activations']['AU12R']:.2f}"
                     if s["code"] == "LFAU_12L"
                     else ""
                 )
@@ -734,6 +748,13 @@ def main() -> None:
             ),
             "arkit_failures": {
                 s["stem"]: s["arkit_ranks"] for s in allex if s.get("arkit_pass") is False
+            },
+            **{
+                f"au_{how}": summarise(
+                    [s[f"au_check_{how}"] for s in allex],
+                    [len(CODE_AUS.get(s["code"], [])) == 1 for s in allex],
+                )
+                for how in ("intensity", "activations")
             },
             "neutral_registration_mm": {
                 s["stem"]: s["B0_mean"]

@@ -35,9 +35,12 @@ Measures, per expression (mm, degrees):
   virtual scans, that the scan sees, :func:`jaxface.fit.evaluation.scan_coverage`);
 * ``fit``: mean distance from the region's true vertices to the fitted skin; ``B0``: the same
   to the neutral (no motion) placed in the scan frame; ``ratio = B0 / fit``;
-* the solver status, the jaw pose, the three strongest AUs by intensity
-  (:func:`jaxface.facs.au_intensities`) and by the sparse readout
-  (:func:`jaxface.fit.au_motion.au_sparse`).
+* the solver status, the jaw pose, the three strongest AUs of the fit's readout
+  (``au_intensities``, :func:`jaxface.fit.au_motion.read_aus`) and of the table's inverse of the
+  activations (``au_from_activations``), the coded AUs' intensities and FACS letters;
+* the readout checks of ``au_checks.py`` for both readouts: the coded AUs within the top
+  (number coded + 1), single-AU shapes with more than 2 bilateral AUs at >= 0.99, and AUs at
+  >= 0.5 whose removal moves the skin less than 0.05 mm.
 
 Summary per identity and scan kind: the mean fit error over all fitted expressions, how many
 are within 1 mm, and how many at least 2x better than B0 (the issue's targets: mean <= 0.5 mm,
@@ -56,6 +59,7 @@ from pathlib import Path
 
 import numpy as np
 
+from au_checks import au_check, summarise
 from jaxface.anatomy.muscle_map import RANGE_EDITS, load_muscle_map
 from jaxface.closest import SurfaceIndex
 from jaxface.fit.evaluation import ICT_FACE_VERTICES, load_truth, scan_coverage
@@ -155,19 +159,6 @@ def coded_aus(expression: str) -> tuple[tuple[str, ...], ...]:
     return CODED_AUS.get(base, ())
 
 
-def au_check(values: dict, expression: str) -> dict:
-    """Issue 44's readout checks on one fit's AU values (AU -> intensity, bilateral names).
-
-    ``coded_rank_ok``: every coded group has a member among the top ``len(groups) + 1`` AUs
-    (None when the shape is uncoded); ``n_saturated``: bilateral AUs at >= 0.99."""
-    bil = {a: float(x) for a, x in values.items() if a[-1] not in "LR"}
-    order = [a for a, x in sorted(bil.items(), key=lambda kv: -kv[1]) if x > 0.0]
-    groups = coded_aus(expression)
-    top = set(order[: len(groups) + 1])
-    ok = all(any(a in top for a in g) for g in groups) if groups else None
-    return {"coded_rank_ok": ok, "n_saturated": int(sum(x >= 0.99 for x in bil.values()))}
-
-
 def run_identity(
     ict, lm_ids, k: int, kinds, expressions, batch: int, options, subject_options=None
 ) -> dict:
@@ -200,10 +191,10 @@ def run_identity(
             fit_d = SurfaceIndex.from_mesh(r.fitted).query(pts).distances
             b0_d = SurfaceIndex.from_mesh(r.baseline_meshes["B0"]).query(pts).distances
             fit_mm, b0_mm = float(fit_d.mean()), float(b0_d.mean())
-            bil = {a: x for a, x in r.au_intensities.items() if a[-1] not in "LR"}
-            top = sorted(bil.items(), key=lambda kv: -kv[1])[:3]
-            sp = {a: x for a, x in r.au_sparse.items() if a[-1] not in "LR"}
-            top_sparse = sorted(sp.items(), key=lambda kv: -kv[1])[:3]
+            top = r.strongest_aus(3, bilateral_only=True)
+            top_act = r.strongest_aus(3, bilateral_only=True, by="activations")
+            groups = coded_aus(name)
+            coded = [max(g, key=lambda a: r.au_intensities.get(a, 0.0)) for g in groups]
             rows.append(
                 {
                     "expression": name,
@@ -214,12 +205,19 @@ def run_identity(
                     "ratio_B0_over_fit": b0_mm / fit_mm if fit_mm > 0 else None,
                     "status": r.status,
                     "jaw": r.jaw,
+                    "activations": r.activations,
                     "top_aus": [[a, round(float(x), 3)] for a, x in top],
-                    "top_aus_sparse": [[a, round(float(x), 3)] for a, x in top_sparse],
-                    "n_aus_saturated": int(sum(x >= 0.99 for x in bil.values())),
-                    "coded_aus": [list(g) for g in coded_aus(name)],
-                    "au_check_intensity": au_check(r.au_intensities, name),
-                    "au_check_sparse": au_check(r.au_sparse, name),
+                    "top_aus_from_activations": [[a, round(float(x), 3)] for a, x in top_act],
+                    "coded_aus": [list(g) for g in groups],
+                    "coded_intensity": {a: round(r.au_intensities.get(a, 0.0), 3) for a in coded},
+                    "letters": r.to_dict()["au_intensity_letters"],
+                    "readout_misfit_mm": r.au_readout.misfit_mm if r.au_readout else None,
+                    "au_check_intensity": au_check(
+                        r.au_intensities, groups, subject.response, subject.muscle_names
+                    ),
+                    "au_check_activations": au_check(
+                        r.au_from_activations, groups, subject.response, subject.muscle_names
+                    ),
                 }
             )
         out["kinds"][kind] = {"fit_s_per_scan": fit_s / max(len(scans), 1), "rows": rows}
@@ -237,12 +235,10 @@ def summary(rows) -> dict:
         "n_2x_B0": int((ratio >= 2.0).sum()),
         "worse_than_B0": [r["expression"] for r in rows if (r["ratio_B0_over_fit"] or 0) < 1.0],
         **{
-            f"au_{how}": {
-                "n_coded": sum(r[f"au_check_{how}"]["coded_rank_ok"] is not None for r in rows),
-                "n_coded_rank_ok": sum(bool(r[f"au_check_{how}"]["coded_rank_ok"]) for r in rows),
-                "n_over_2_saturated": sum(r[f"au_check_{how}"]["n_saturated"] > 2 for r in rows),
-            }
-            for how in ("intensity", "sparse")
+            f"au_{how}": summarise(
+                [r[f"au_check_{how}"] for r in rows], [len(r["coded_aus"]) == 1 for r in rows]
+            )
+            for how in ("intensity", "activations")
         },
     }
 
@@ -322,15 +318,16 @@ def main(argv=None):
                 f"worse than B0: {s['worse_than_B0']}",
                 flush=True,
             )
-            print(
-                "AU readout, coded AUs within the top (n coded + 1) / > 2 saturated: "
-                + "; ".join(
-                    f"{how} {s['au_' + how]['n_coded_rank_ok']}/{s['au_' + how]['n_coded']}"
-                    f" / {s['au_' + how]['n_over_2_saturated']}"
-                    for how in ("intensity", "sparse")
-                ),
-                flush=True,
-            )
+            for how in ("intensity", "activations"):
+                c = s["au_" + how]
+                print(
+                    f"AU readout ({'au_intensities' if how == 'intensity' else 'au_from_activations'}): "
+                    f"coded AUs within the top (n coded + 1) {c['n_coded_rank_ok']}/{c['n_coded']}; "
+                    f"single-AU shapes with > 2 bilateral AUs at >= 0.99: "
+                    f"{c['n_single_over_2_saturated']}/{c['n_single']}; AUs at >= 0.5 whose removal "
+                    f"moves the skin < 0.05 mm: {c['n_idle_strong']} (on {c['n_with_idle_strong']} fits)",
+                    flush=True,
+                )
         results["identities"].append(res)
         out = Path(a.results)
         out.mkdir(parents=True, exist_ok=True)

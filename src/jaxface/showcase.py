@@ -199,7 +199,7 @@ def _scan_and_fit(rig, head, out: Path, say, timings) -> list[dict]:
                 "max_activation_error": float(np.abs(a_fit - a_true).max()),
                 "strongest_aus": r.strongest_aus(4, bilateral_only=False),
                 "most_visible_aus_mm": r.strongest_aus(4, bilateral_only=True, by="motion"),
-                "sparse_aus": r.strongest_aus(4, bilateral_only=True, by="sparse"),
+                "aus_from_activations": r.strongest_aus(4, bilateral_only=True, by="activations"),
                 "files": {k: str(Path(v).relative_to(out)) for k, v in files.items()},
             }
         )
@@ -231,13 +231,13 @@ def _markdown(rep: dict) -> str:
             "## Inverse: synthetic Bosphorus-style scans fitted back",
             "",
             "| scan | status | scan -> fit (mm) | skin error mean / max (mm) | jaw pitch true / fit (deg) | "
-            "max activation error | strongest AUs | most visible AUs (mm) | fewest AUs for the motion |",
+            "max activation error | AUs (intensity) | most visible AUs (mm) | AUs from the activations |",
             "|---|---|---|---|---|---|---|---|---|",
         ]
         for f in rep["fits"]:
             aus = ", ".join(f"{k} {v:.2f}" for k, v in f["strongest_aus"])
             vis = ", ".join(f"{k} {v:.2f}" for k, v in f["most_visible_aus_mm"])
-            spa = ", ".join(f"{k} {v:.2f}" for k, v in f["sparse_aus"])
+            spa = ", ".join(f"{k} {v:.2f}" for k, v in f["aus_from_activations"])
             L.append(
                 f"| {f['stem']} | {f['status']} | {f['scan_to_fit_mean_mm']:.3f} | "
                 f"{f['skin_error_mm']['mean']:.3f} / {f['skin_error_mm']['max']:.2f} | "

@@ -180,6 +180,7 @@ def test_fit_command_defaults_are_the_librarys():
     assert defaults["points"] == fo.n_points
     assert defaults["motion_fraction"] == fo.motion_fraction
     assert defaults["au_sparse_weight"] == fo.au_sparse_weight
+    assert defaults["au_min_motion"] == fo.au_min_motion_mm
     assert defaults["outer_iterations"] == fo.outer_iterations
     assert defaults["extra_iterations"] == fo.extra_iterations
     assert defaults["max_steps"] == fo.max_steps

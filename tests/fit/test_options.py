@@ -50,6 +50,7 @@ DEFAULTS = {
     "converge_jaw": 0.05,
     "converge_cost": 0.01,
     "au_sparse_weight": 0.02,
+    "au_min_motion_mm": 0.05,
 }
 
 
@@ -113,3 +114,5 @@ def test_sparse_readout_weight_is_checked():
     for bad in (-0.1, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="au_sparse_weight"):
             FitOptions(au_sparse_weight=bad)
+        with pytest.raises(ValueError, match="au_min_motion_mm"):
+            FitOptions(au_min_motion_mm=bad)

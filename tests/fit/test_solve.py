@@ -127,82 +127,141 @@ def test_au_motion_readout_matches_exact_syntheses_of_each_aus_share(round_trip)
         "AU1",
         "AU26",
     )
-    with pytest.raises(ValueError, match="sparse"):
+    with pytest.raises(ValueError, match="activations"):
         res.strongest_aus(3, by="size")
+    with pytest.raises(ValueError, match="au_intensities"):
+        res.strongest_aus(3, by="sparse")
 
 
-def test_sparse_au_readout_is_a_bounded_minimiser_of_its_cost(round_trip):
-    """au_sparse against its own definition, evaluated independently with the dense reduced
-    model in NumPy: the returned intensities lie in [0, 1], no single-coordinate move (inside
-    the bounds) lowers the cost, the cost is at most that of the table's NNLS intensities it
-    starts from, and the reported misfit is the RMS distance of the two motions."""
+def _dense_motion(model, names):
+    """Skin displacement (mm) of activations on the dense reduced model, jaw at rest: the
+    independent evaluation the readout tests compare against."""
+    zero = jnp.zeros(3)
+    base = np.asarray(model.displacement(jnp.zeros(len(names)), zero))
+
+    def disp(act):
+        return np.asarray(model.displacement(jnp.asarray(act), zero)) - base
+
+    return disp
+
+
+def _rms(d) -> float:
+    return float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
+
+
+def test_au_readout_selection_is_the_l1_minimiser_and_calibration_a_newton_step(round_trip):
+    """read_aus against its definition, evaluated independently with the dense reduced model
+    in NumPy: the selection step (``lasso``) is a bounded minimiser of the L1 cost and costs no
+    more than the table's NNLS intensities it starts from; each selected AU's calibrated
+    intensity is the L1 value plus ``weight / (2 u^2)`` with ``u`` its RMS motion per unit
+    intensity (central differences of the dense model), and that step lowers the plain
+    misfit; the reported misfit is the RMS distance of the two motions; the jaw AUs come from
+    the pose."""
     from jaxface.facs import au_decomposition
-    from jaxface.fit.au_motion import au_sparse
+    from jaxface.fit.au_motion import read_aus
 
     subject = round_trip[0]
     names = list(subject.muscle_names)
     model = subject.response
+    disp = _dense_motion(model, names)
     rng = np.random.default_rng(5)
     a = np.zeros(len(names))
     on = [names.index(n) for n in CONTROLS]
     a[on] = rng.uniform(0.1, 0.9, len(on))
-    zero = jnp.zeros(3)
-    base = np.asarray(model.displacement(jnp.zeros(len(names)), zero))
-    target = np.asarray(model.displacement(jnp.asarray(a), zero)) - base
+    target = disp(a)
     aus, inten, rows = au_decomposition(a, names)
     w = 0.02
 
-    def cost(i):
-        act = np.clip(np.asarray(i) @ rows, 0.0, 1.0)
-        d = np.asarray(model.displacement(jnp.asarray(act), zero)) - base - target
-        mis = float(np.mean(np.sum(d * d, axis=1)))
-        return mis + w * float(np.sum(i)), mis
+    def motion(i):
+        return disp(np.clip(np.asarray(i) @ rows, 0.0, 1.0))
 
-    out, misfit = au_sparse(model, a, np.array([4.0, 0.0, 0.0]), names, weight=w)
-    x = np.array([out[au] for au in aus])
-    assert np.all((x >= 0.0) & (x <= 1.0))
-    c, mis = cost(x)
-    assert misfit == pytest.approx(np.sqrt(mis), rel=1e-6, abs=1e-9)
-    assert c <= cost(inten)[0] + 1e-12
-    for k in range(len(x)):
+    def cost(i, weight):
+        mis = _rms(motion(i) - target) ** 2
+        return mis + weight * float(np.sum(i)), mis
+
+    out = read_aus(model, a, np.array([4.0, 0.0, 0.0]), names, weight=w, min_motion_mm=0.0)
+    xl = np.array([out.lasso[au] for au in aus])
+    x = np.array([out.intensities[au] for au in aus])
+    assert np.all((xl >= 0.0) & (xl <= 1.0)) and np.all((x >= 0.0) & (x <= 1.0))
+    c = cost(xl, w)[0]
+    assert c <= cost(inten, w)[0] + 1e-12
+    for k in range(len(xl)):
         for h in (1e-3, -1e-3):
-            y = x.copy()
+            y = xl.copy()
             y[k] = np.clip(y[k] + h, 0.0, 1.0)
-            if y[k] != x[k]:
-                assert cost(y)[0] >= c - 1e-7, (aus[k], x[k], h)
-    # the jaw AUs come from the pose, as in au_intensities (4 degrees of AU26's 10)
-    assert out["AU26"] == pytest.approx(0.4) and out["AU27"] == 0.0
-    # without the L1 term the readout reproduces the motion (these controls map one-to-one
-    # onto AU rows); with it the misfit grows but stays a fraction of the motion
-    _, mis0 = au_sparse(model, a, np.zeros(3), names, weight=0.0)
-    size = float(np.sqrt(np.mean(np.sum(target * target, axis=1))))
-    assert mis0 < 0.02 * size + 1e-3 and mis0 <= misfit + 1e-9 and misfit < 0.3 * size
-    with pytest.raises(ValueError, match="weight"):
-        au_sparse(model, a, np.zeros(3), names, weight=-1.0)
+            if y[k] != xl[k]:
+                assert cost(y, w)[0] >= c - 1e-7, (aus[k], xl[k], h)
+    kept = np.flatnonzero(xl > 1e-4)
+    assert len(kept) >= 3 and np.all(x[xl <= 1e-4] == 0.0)
+    for k in kept:
+        e = np.zeros(len(aus))
+        e[k] = 1e-4
+        u = _rms(motion(xl + e) - motion(xl - e)) / 2e-4
+        assert x[k] == pytest.approx(min(xl[k] + w / (2 * u * u), 1.0), abs=2e-3), aus[k]
+    assert cost(x, 0.0)[1] < cost(xl, 0.0)[1]
+    assert out.misfit_mm == pytest.approx(np.sqrt(cost(x, 0.0)[1]), rel=1e-5, abs=1e-8)
+    assert out.misfit_mm < 0.05 * _rms(target) + 1e-3
+    assert out.intensities["AU26"] == pytest.approx(0.4) and out.intensities["AU27"] == 0.0
+    for bad in ({"weight": -1.0}, {"min_motion_mm": float("nan")}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            read_aus(model, a, np.zeros(3), names, **bad)
 
 
-def test_sparse_au_readout_of_the_round_trip_names_its_aus(round_trip):
+def test_au_readout_reads_the_tables_intensities_back_and_prunes_invisible_aus(round_trip):
+    """Calibration against the table itself: activations made by the AU table from known
+    intensities (AU12 L 0.6 / R 0.45, AU1 0.5, AU4R 0.8) read back as those intensities, where
+    the L1 step alone reads the weak AU4R low; an AU whose motion is below ``min_motion_mm``
+    (AU15L at 0.02, measured on the dense model), read by the plain
+    least squares (weight 0), is pruned, and every AU reported moves the skin by at least
+    ``min_motion_mm`` when removed."""
+    from jaxface.facs import au_decomposition
+    from jaxface.fit.au_motion import read_aus
+
+    subject = round_trip[0]
+    names = list(subject.muscle_names)
+    model = subject.response
+    disp = _dense_motion(model, names)
+    aus, _, rows = au_decomposition(np.zeros(len(names)), names)
+    true = {"AU12L": 0.6, "AU12R": 0.45, "AU1L": 0.5, "AU1R": 0.5, "AU4R": 0.8}
+    i_true = np.array([true.get(au, 0.0) for au in aus])
+    a_true = np.clip(i_true @ rows, 0.0, 1.0)
+    out = read_aus(model, a_true, np.zeros(3), names)
+    # AU1R and AU4R both move the right brow, so they trade a little against each other
+    tol = {"AU1R": 0.03, "AU4R": 0.06}
+    for au, v in true.items():
+        assert out.intensities[au] == pytest.approx(v, abs=tol.get(au, 0.01)), (au, out.intensities)
+    assert out.lasso["AU4R"] < 0.65, out.lasso
+    assert out.misfit_mm < 0.02
+    assert set(out.removal_mm) == set(true) | {"AU12", "AU1"}
+    assert min(out.removal_mm.values()) >= 0.05
+    tiny = i_true.copy()
+    tiny[aus.index("AU15L")] = 0.02
+    a_tiny = np.clip(tiny @ rows, 0.0, 1.0)
+    assert 0.001 < _rms(disp(a_tiny) - disp(a_true)) < 0.05
+    every = read_aus(model, a_tiny, np.zeros(3), names, weight=0.0, min_motion_mm=0.0)
+    assert every.intensities["AU15L"] == pytest.approx(0.02, abs=5e-3)
+    pruned = read_aus(model, a_tiny, np.zeros(3), names, weight=0.0)
+    assert pruned.intensities["AU15L"] == 0.0 and "AU15L" not in pruned.removal_mm
+    assert pruned.intensities["AU12L"] == pytest.approx(0.6, abs=0.01)
+
+
+def test_au_readout_of_the_round_trip_names_its_aus(round_trip):
     """The fitted round trip (smile L 0.6 / R 0.45, inner brow raise 0.5, corrugator R 0.3, jaw
-    5 degrees = AU26 0.5): the sparse readout names AU12, AU1 and AU26 first and gives AU12's
-    sides within 0.05 of the true activations (their table rows are the zygomaticus major
-    alone)."""
+    5 degrees = AU26 0.5): the readout names AU12, AU1 and AU26 first and gives AU12's sides
+    within 0.05 of the true activations (their table rows are the zygomaticus major alone);
+    the JSON carries the readout, its letters and the table's inverse of the activations."""
     subject, res = round_trip[:2]
-    sp = res.au_sparse
-    top = [k for k, _ in res.strongest_aus(3, bilateral_only=True, by="sparse")]
+    aus = res.au_intensities
+    top = [k for k, _ in res.strongest_aus(3, bilateral_only=True)]
     assert set(top) == {"AU12", "AU1", "AU26"}, top
-    assert abs(sp["AU12L"] - TRUE["zygomaticus_major_L"]) < 0.05, sp["AU12L"]
-    assert abs(sp["AU12R"] - TRUE["zygomaticus_major_R"]) < 0.05, sp["AU12R"]
-    assert res.au_sparse_misfit_mm is not None and 0.0 <= res.au_sparse_misfit_mm < 0.5
+    assert abs(aus["AU12L"] - TRUE["zygomaticus_major_L"]) < 0.05, aus["AU12L"]
+    assert abs(aus["AU12R"] - TRUE["zygomaticus_major_R"]) < 0.05, aus["AU12R"]
+    assert res.au_readout is not None and 0.0 <= res.au_readout.misfit_mm < 0.5
     doc = res.to_dict()
-    assert (
-        doc["au_sparse"] == pytest.approx(sp)
-        and doc["au_sparse_misfit_mm"] == res.au_sparse_misfit_mm
-    )
-    # the FACS letters of the JSON are those of the intensities
-    from jaxface.facs import intensity_letters
-
-    assert doc["au_intensity_letters"] == intensity_letters(res.au_intensities)
-    assert set(doc["au_intensity_letters"].values()) <= set("ABCDE")
+    assert doc["au_intensities"] == pytest.approx(aus)
+    assert doc["au_readout"]["misfit_mm"] == res.au_readout.misfit_mm
+    assert doc["au_from_activations"] == pytest.approx(res.au_from_activations)
+    assert doc["au_intensity_letters"]["AU12L"] == "C"  # 0.6: marked (C from 0.45)
 
 
 def test_au_motion_sparse_terms_equal_the_dense_reduced_model(round_trip):

@@ -11,7 +11,9 @@ Landmark files default to the scan path with suffix ``.lm3``; a scan without one
 detected landmarks (:mod:`jaxface.detect`, with a note), and ``--landmarks auto`` detects for
 every scan without an explicit file. Several ``--scan`` options fit a
 batch (solved together in one compiled call) with a progress bar. Per scan it writes
-``DIR/<scan-stem>.json`` (keys: ``activations``, ``au_intensities``, ``au_motion_mm``, ``au_sparse``, ``jaw``, ``rigid``,
+``DIR/<scan-stem>.json`` (keys: ``activations``, ``au_intensities`` (the fewest AUs that reproduce the fit's skin motion,
+calibrated; ``au_intensity_letters`` their FACS letters A-E), ``au_from_activations``,
+``au_motion_mm``, ``au_readout``, ``jaw``, ``rigid``,
 ``metrics``, ``baselines``, ``solver``, ``frame``, ``quality``: coverage, identity, noise
 floor and warnings, :mod:`jaxface.fit.quality`; ``arkit``, ``arkit_detail``: the ARKit-52
 readout, :mod:`jaxface.interop.arkit`; see :class:`jaxface.fit.pipeline.ExpressionFit`)
@@ -355,9 +357,16 @@ def register(app: typer.Typer) -> None:
             0.02,
             "--au-sparse-weight",
             min=0.0,
-            help="L1 weight of the sparse AU readout (au_sparse in the JSON: the fewest AUs that "
+            help="L1 weight of the AU readout (au_intensities in the JSON: the fewest AUs that "
             "reproduce the fit's skin motion; mm^2 of mean squared motion per unit intensity; "
             "0 = plain least squares). It reads the fit and does not change it.",
+        ),
+        au_min_motion: float = typer.Option(
+            0.05,
+            "--au-min-motion",
+            min=0.0,
+            help="An AU whose removal moves the readout's skin motion by less than this (mm, RMS) "
+            "is not reported. It reads the fit and does not change it.",
         ),
         levels: int = typer.Option(
             4, "--levels", min=1, help="Activation knots of the rig's reduced model."
@@ -410,6 +419,7 @@ def register(app: typer.Typer) -> None:
         # reduced model and sub-0.1 mm residuals need it (the library follows the dtype)
         jax.config.update("jax_enable_x64", True)
 
+        from ..facs import intensity_letter
         from ..fit.options import FitOptions
         from ..fit.pipeline import SubjectOptions
 
@@ -423,6 +433,7 @@ def register(app: typer.Typer) -> None:
             restart_iterations=restart_iterations,
             restart_when=RestartWhen(restart_when).value,
             au_sparse_weight=au_sparse_weight,
+            au_min_motion_mm=au_min_motion,
         )
         sopts = SubjectOptions(backend=backend, levels=levels, pitch_knots=pitch_knots)
         t0 = time.perf_counter()
@@ -493,16 +504,16 @@ def register(app: typer.Typer) -> None:
         table.add_column("scan", no_wrap=True)
         for col in ("status", "scan->fit mm", "B0 mm", "B1 mm", "pitch deg"):
             table.add_column(col, justify="right")
-        table.add_column("strongest AUs (intensity)")
+        table.add_column("AUs (intensity, FACS letter)")
         table.add_column("most visible AUs (skin motion, mm)")
-        table.add_column("fewest AUs for the motion (sparse)")
         for r in results:
-            aus = ", ".join(f"{k} {v:.2f}" for k, v in r.strongest_aus(3, bilateral_only=True))
+            aus = ", ".join(
+                f"{k} {v:.2f} {intensity_letter(v) or '-'}"
+                for k, v in r.strongest_aus(3, bilateral_only=True)
+                if v > 0.0
+            )
             vis = ", ".join(
                 f"{k} {v:.2f}" for k, v in r.strongest_aus(3, bilateral_only=True, by="motion")
-            )
-            spa = ", ".join(
-                f"{k} {v:.2f}" for k, v in r.strongest_aus(3, bilateral_only=True, by="sparse")
             )
             table.add_row(
                 r.stem,
@@ -511,9 +522,8 @@ def register(app: typer.Typer) -> None:
                 f"{r.baselines['B0'].scan_to_fit['all'].mean:.3f}",
                 f"{r.baselines['B1'].scan_to_fit['all'].mean:.3f}",
                 f"{r.jaw['pitch_deg']:.1f}",
-                aus,
+                aus or "none",
                 vis,
-                spa,
             )
         console.print(table)
         bad = [r.stem for r in results if r.status != "successful"]

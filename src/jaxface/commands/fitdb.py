@@ -163,6 +163,9 @@ def register(app: typer.Typer) -> None:
         au_sparse_weight: float = typer.Option(
             0.02, "--au-sparse-weight", min=0.0, help="As jaxface fit."
         ),
+        au_min_motion: float = typer.Option(
+            0.05, "--au-min-motion", min=0.0, help="As jaxface fit."
+        ),
         levels: int = typer.Option(4, "--levels", min=1, help="As jaxface fit."),
         pitch_knots: int = typer.Option(12, "--pitch-knots", min=3, help="As jaxface fit."),
         batch_size: int | None = typer.Option(  # noqa: UP007
@@ -243,6 +246,7 @@ def register(app: typer.Typer) -> None:
                 restart_iterations=restart_iterations,
                 restart_when=RestartWhen(restart_when).value,
                 au_sparse_weight=au_sparse_weight,
+                au_min_motion_mm=au_min_motion,
             ),
             subject_options=SubjectOptions(backend=backend, levels=levels, pitch_knots=pitch_knots),
             template=template,

@@ -19,10 +19,9 @@ Submodules:
   :mod:`jaxface.fit.correspond` (scan-to-skin correspondences), :mod:`jaxface.fit.conditioning`
   (a diagnostic) and :mod:`jaxface.fit.solve` (the outer loop, :func:`fit_points`); the design
   is in ``docs/design/fit.md``.
-* :mod:`jaxface.fit.au_motion` (JAX): AU readouts from a fit's skin motion: the motion (mm)
-  each action unit accounts for (:func:`au_skin_motion`: the AUs an expression *shows*) and
-  the sparse intensities (:func:`jaxface.fit.au_motion.au_sparse`: the fewest AUs that
-  reproduce the motion), alongside the intensities of :func:`jaxface.facs.au_intensities`.
+* :mod:`jaxface.fit.au_motion` (JAX): AU readouts from a fit's skin motion: the fit's AU
+  intensities (:func:`read_aus`: the fewest AUs that reproduce the motion, calibrated) and the
+  motion (mm) each AU's share of the activations accounts for (:func:`au_skin_motion`).
 * :mod:`jaxface.fit.pipeline`: neutral scan -> subject rig (:func:`prepare_subject`);
   expression scans -> activations, AUs, fitted skin, metrics, baselines
   (:func:`fit_expressions`); what ``jaxface fit`` runs.
@@ -60,6 +59,8 @@ _LAZY = {
     "fit_expressions": "jaxface.fit.pipeline",
     "ExpressionFit": "jaxface.fit.pipeline",
     "au_skin_motion": "jaxface.fit.au_motion",
+    "read_aus": "jaxface.fit.au_motion",
+    "AuReadout": "jaxface.fit.au_motion",
 }
 _SUBMODULES = {
     "align",

@@ -1,41 +1,38 @@
-"""AU motion readout: how much of a fitted expression's skin motion each action unit accounts
-for, in mm.
+"""AU readouts of a fitted expression: which action units it shows, and how strongly.
 
-:func:`jaxface.facs.au_intensities` reads AU intensities out of the fitted activations: how hard
-the muscles of each AU work, in [0, 1]. That is not how strongly an AU shows. A small muscle
-(mentalis, depressor labii inferioris, buccinator) reaches activation 1 while it moves the skin
-a millimetre, and a large one (zygomaticus major) at 0.6 moves the mouth corner 10 mm. On the
-Bosphorus-style smiles the fit saturates several small muscles at 1 while most of the motion is
-the zygomaticus major's, so AU12 ranks 6th-8th by intensity. FACS coders score intensity by the
-visible change, and this readout follows them:
+* :func:`read_aus` gives the fit's AU intensities (``ExpressionFit.au_intensities``, the
+  headline output): the fewest AUs whose table activations reproduce the fit's *skin motion*,
+  refitted on that support so the intensities are calibrated (a rig driven by the table at
+  intensities ``i`` reads ``i`` back), and pruned of AUs whose removal moves the skin by less
+  than :data:`AU_MIN_MOTION_MM`. Many activation vectors give nearly the same skin (two
+  antagonists held at 1 cancel on the eyelid; a small muscle at 1 moves the skin a
+  millimetre), so the table's inverse of the fit's own activations
+  (:func:`jaxface.facs.au_intensities`, kept as ``ExpressionFit.au_from_activations``) reports
+  controls the motion does not need; reading the motion removes that freedom, as FACS coders
+  code the fewest AUs that account for what they see.
+* :func:`au_skin_motion` says how much of the motion each AU's share of the fit's activations
+  accounts for, in mm (``ExpressionFit.au_motion_mm``):
 
-* the activations are split into AU shares by :func:`jaxface.facs.au_decomposition` (the same
-  non-negative least squares the intensities come from): AU ``k``'s share is
-  ``intensity_k * row_k``;
-* the jaw pose is split like the intensities: the opening up to AU26's 10 degrees is AU26, the
-  rest AU27; positive protrusion is AU29; yaw is AU30L (toward the subject's left, +) or
-  AU30R;
-* each share is applied *alone* to the subject's reduced model
-  (:class:`jaxface.fit.reduced.ResponseModel`, the model the fit solves with) and the RMS skin
-  displacement over its points (the face region, mm) is that AU's motion. A bilateral AU
-  (``AU12``) is both sides' shares together, its sides (``AU12L``, ``AU12R``) each alone.
+  * the activations are split into AU shares by :func:`jaxface.facs.au_decomposition`
+    (AU ``k``'s share is ``intensity_k * row_k``);
+  * the jaw pose is split like the intensities: the opening up to AU26's 10 degrees is AU26,
+    the rest AU27; positive protrusion is AU29; yaw is AU30L (toward the subject's left, +)
+    or AU30R;
+  * each share is applied *alone* to the subject's reduced model
+    (:class:`jaxface.fit.reduced.ResponseModel`, the model the fit solves with) and the RMS
+    skin displacement over its points (the face region, mm) is that AU's motion. A bilateral
+    AU (``AU12``) is both sides' shares together, its sides (``AU12L``, ``AU12R``) each alone.
 
-The numbers do not add up to the whole motion (the reduced model is additive in the muscles
-and the jaw, but the RMS of a sum is not the sum of the RMSs): they rank the AUs by their
-visible effect; they are not a decomposition of the motion's variance.
+  The numbers do not add up to the whole motion (the RMS of a sum is not the sum of the
+  RMSs): they rank the AUs by their visible effect.
 
-:func:`au_sparse` reads intensities out of the motion instead of the activations: the
-sparsest AU intensities whose table activations reproduce the fit's skin motion. Many
-activation vectors give nearly the same skin (an antagonist pair both at 1 cancels on the
-eyelid), so the fit's own activations are one arbitrary choice among them, and the table's
-inverse of that choice (:func:`jaxface.facs.au_intensities`) inherits it. Asking which few AUs
-explain the *motion* removes that freedom, as FACS coders code the fewest AUs that account for
-what they see.
+Both work on the reduced model alone (no synthesis): a readout takes a fraction of a second.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import equinox as eqx
 import jax
@@ -45,10 +42,17 @@ from scipy.optimize import minimize
 
 from ..anatomy.jaw import JawPose
 from ..facs import AU_JAW, au_decomposition, au_dict, sort_aus
-from .options import AU_SPARSE_WEIGHT
+from .options import AU_MIN_MOTION_MM, AU_SPARSE_WEIGHT
 from .reduced import ResponseModel, hermite_basis
 
-__all__ = ["au_skin_motion", "au_sparse", "motion_gram", "AU_SPARSE_WEIGHT"]
+__all__ = [
+    "au_skin_motion",
+    "read_aus",
+    "AuReadout",
+    "motion_gram",
+    "AU_SPARSE_WEIGHT",
+    "AU_MIN_MOTION_MM",
+]
 
 
 @eqx.filter_jit
@@ -136,7 +140,7 @@ def au_skin_motion(
 
 
 def motion_gram(response) -> np.ndarray:
-    """Gram matrix of a reduced model's coefficient fields, for :func:`au_sparse`.
+    """Gram matrix of a reduced model's coefficient fields, for :func:`read_aus`.
 
     The model is additive in the muscles and each muscle's displacement is a cubic Hermite
     spline in its activation: ``D(a) = sum_m psi(a_m) . F_m`` with ``psi`` ``(2N,)`` the spline
@@ -180,7 +184,7 @@ def _spline_weights(x, knots):
 
 @jax.jit
 def _sparse_cost(G, knots, i, rows, phi_a, weight):
-    """Cost of :func:`au_sparse` at intensities ``i`` ``(K,)``: ``(cost, mean squared misfit
+    """Cost of :func:`read_aus` at intensities ``i`` ``(K,)``: ``(cost, mean squared misfit
     mm^2, d cost / d i)``. ``rows`` ``(K, M)`` the AU table rows, ``phi_a`` the spline
     weights of the fitted activations (the rest state's weights cancel in the difference)."""
 
@@ -194,55 +198,138 @@ def _sparse_cost(G, knots, i, rows, phi_a, weight):
     return c, mis, g
 
 
-def au_sparse(
+@jax.jit
+def _motion_distance(G, knots, rows, i1, i2):
+    """RMS distance (mm) between the skin motions of two unilateral-AU intensity vectors
+    ``i1``, ``i2`` ``(K,)`` on the reduced model (the quadratic form of :func:`motion_gram`)."""
+
+    def phi(i):
+        return _spline_weights(jnp.clip(i @ rows, 0.0, 1.0), knots)
+
+    d = phi(i1) - phi(i2)
+    return jnp.sqrt(jnp.maximum(d @ (G @ d), 0.0))
+
+
+@jax.jit
+def _unit_motion(G, knots, rows, x):
+    """``u_k = |dD/di_k|`` ``(K,)``: each AU's RMS skin motion per unit intensity at
+    unilateral-AU intensities ``x`` ``(K,)`` (mm), from the Jacobian of the spline weights and
+    the Gram matrix."""
+
+    def phi(i):
+        return _spline_weights(jnp.clip(i @ rows, 0.0, 1.0), knots)
+
+    J = jax.jacfwd(phi)(x)  # (M 2N, K)
+    return jnp.sqrt(jnp.maximum(jnp.einsum("ak,ab,bk->k", J, G, J), 0.0))
+
+
+@dataclass(frozen=True)
+class AuReadout:
+    """The AU readout of one fit (:func:`read_aus`).
+
+    Attributes:
+        intensities: ``{AU: intensity}`` in [0, 1], the calibrated sparse intensities (bilateral
+            AUs the mean of their sides, the sides as ``AUxxL`` / ``AUxxR``, the jaw AUs from
+            the jaw pose), sorted by AU number. This is ``ExpressionFit.au_intensities``.
+        misfit_mm: RMS distance (mm) over the reduced model's points between the skin motion
+            the intensities produce and the fit's.
+        removal_mm: ``{AU: mm}`` for every muscle AU the readout keeps (each side, and a
+            bilateral AU with both sides together): how far (RMS, mm) the readout's skin
+            motion moves when that AU is removed (the others unchanged). Each side is at
+            least ``min_motion_mm``.
+        lasso: ``{AU: intensity}`` of the L1 step alone (shrunk toward 0 by the penalty).
+        weight: the L1 weight (mm^2 per unit intensity); min_motion_mm: the removal threshold.
+    """
+
+    intensities: dict
+    misfit_mm: float
+    removal_mm: dict
+    lasso: dict
+    weight: float
+    min_motion_mm: float
+
+    def to_dict(self) -> dict:
+        """The ``au_readout`` block of the fit JSON (mm)."""
+        return {
+            "method": "L1 selection in motion space, per-AU Newton calibration, pruning",
+            "l1_weight_mm2": self.weight,
+            "min_motion_mm": self.min_motion_mm,
+            "misfit_mm": self.misfit_mm,
+            "removal_mm": {k: float(v) for k, v in self.removal_mm.items()},
+            "lasso": {k: float(v) for k, v in self.lasso.items()},
+        }
+
+
+def read_aus(
     response,
     activations,
     jaw,
     muscle_names: Sequence[str],
     *,
     weight: float = AU_SPARSE_WEIGHT,
+    min_motion_mm: float = AU_MIN_MOTION_MM,
     gram=None,
-) -> tuple[dict[str, float], float]:
-    """AU intensities of the sparsest AU combination that reproduces a fit's skin motion.
+    cheek_puff: float = 0.0,
+) -> AuReadout:
+    """FACS AU intensities that account for a fit's skin motion with the fewest AUs.
 
-    Solves, over the unilateral AU intensities ``i`` of the table (:func:`jaxface.facs.au_decomposition`'s
-    AUs and rows ``A``),
+    Many activation vectors give nearly the same skin (an antagonist pair both at 1 cancels on
+    the eyelid), so the table's inverse of the fit's own activations
+    (:func:`jaxface.facs.au_intensities`) reports controls the motion does not need. This
+    readout asks which AUs *the motion* needs, as a FACS coder codes the fewest AUs that
+    account for what is seen. Over the unilateral AU intensities ``i`` ``(K,)`` of the table
+    (:func:`jaxface.facs.au_decomposition`'s AUs, rows ``A`` ``(K, M)``), with ``D(a)``
+    ``(P, 3)`` the reduced model's skin displacement (mm, muscles only, jaw at rest), ``a`` the
+    fitted activations and ``m(i) = mean_p |D(clip(A^T i))_p - D(a)_p|^2`` (mm^2):
 
-    ``min_{0 <= i <= 1}  mean_p |D(A^T i)_p - D(a)_p|^2 + weight * sum_k i_k``
+    1. **Selection** (L1): ``i_1 = argmin_{0 <= i <= 1} m(i) + weight * sum_k i_k``
+       (L-BFGS-B from the table's non-negative least squares). An AU stays only where it
+       accounts for more than ``weight`` mm^2 of mean squared motion per unit intensity: an
+       antagonist pair whose net motion is small drops out, and of two AUs that move the same
+       skin the one that does it with less intensity stays.
+    2. **Calibration**: the penalty shrinks each kept intensity by about
+       ``weight / (2 u_k^2)``, where ``u_k = |dD/di_k|`` is the AU's RMS skin motion per unit
+       intensity at ``i_1`` (mm): weak AUs the most. Each kept AU gets that back,
+       ``i_k = clip(i_1k + weight / (2 u_k^2), 0, 1)``: one Newton step per AU on ``m`` (the
+       Gauss-Newton curvature ``2 u_k^2``) from the L1 optimum, where ``dm/di_k = -weight``.
+       For AUs that move different skin this is the unpenalised optimum on the support, so
+       table activations at intensities ``i`` read ``i`` back; unlike a joint refit it does
+       not re-open the directions in which overlapping AUs trade against each other (which
+       sends antagonist pairs back to 1).
+    3. **Pruning**: an AU whose removal moves the readout's skin motion by less than
+       ``min_motion_mm`` (RMS over the points, the other AUs unchanged) is dropped, the least
+       visible first, until every AU reported moves the skin by at least that much.
 
-    where ``D(a)`` ``(P, 3)`` is the reduced model's skin displacement (mm, muscles only, jaw at
-    rest) over its points and ``a`` the fitted activations (L-BFGS-B from the table's
-    non-negative least-squares intensities). The L1 term keeps an AU only where it accounts for
-    more than ``weight`` mm^2 of the mean squared motion per unit intensity: an antagonist pair
-    the fit holds at 1 against each other, whose net motion is small, drops out, and where two
-    AUs move the same skin the one that does it with less intensity stays. The jaw AUs (26,
-    27, 29, 30) come from the jaw pose as in :func:`jaxface.facs.au_intensities`.
+    The jaw AUs (26, 27, 29, 30) come from the jaw pose as in
+    :func:`jaxface.facs.au_intensities`; the cheek puff is AU34.
 
     Args:
         response: the subject's :class:`~jaxface.fit.reduced.ResponseModel` (mm).
         activations: ``(M,)`` fitted activations in [0, 1], ordered as ``muscle_names``.
         jaw: ``(3,)`` effective jaw pose ``[pitch_deg, yaw_deg, protrusion_mm]``.
         muscle_names: the rig's control names.
-        weight: the L1 weight (mm^2 per unit intensity, >= 0; 0 gives the plain bounded least
-            squares in motion space).
+        weight: the L1 weight (mm^2 per unit intensity, >= 0; 0 selects every AU that lowers
+            the misfit).
+        min_motion_mm: the pruning threshold (mm, >= 0; 0 prunes nothing).
         gram: :func:`motion_gram` of ``response`` (computed here if not given; pass it to
-            read many fits of one subject: 0.24 s on bs901's 4,887-point model, a readout then
-            0.08 s on the 2-core CPU).
+            read many fits of one subject).
+        cheek_puff: the fitted cheek puff (reported as AU34).
 
     Returns:
-        ``({AU: intensity}, misfit_mm)``: the intensities in [0, 1] (bilateral AUs the mean of
-        their sides, the sides as ``AUxxL`` / ``AUxxR``, sorted by AU number) and the RMS
-        distance (mm) between the motion they produce and the fit's.
+        :class:`AuReadout`.
 
     Raises:
         RigError: ``activations`` and ``muscle_names`` differ in length.
-        ValueError: a negative or non-finite ``weight``.
+        ValueError: a negative or non-finite ``weight`` or ``min_motion_mm``.
     """
     w = float(weight)
-    if not (np.isfinite(w) and w >= 0.0):
-        raise ValueError(
-            f"au_sparse: weight must be a finite number >= 0 (mm^2 per unit intensity), got {weight!r}."
-        )
+    tau = float(min_motion_mm)
+    for name, v in (("weight", w), ("min_motion_mm", tau)):
+        if not (np.isfinite(v) and v >= 0.0):
+            raise ValueError(
+                f"read_aus: {name} must be a finite number >= 0 (weight in mm^2 per unit "
+                f"intensity, min_motion_mm in mm), got {v!r}."
+            )
     a = np.asarray(activations, np.float64).ravel()
     aus, inten, rows = au_decomposition(a, muscle_names)
     dt = response.rest.dtype
@@ -250,25 +337,58 @@ def au_sparse(
     knots = jnp.asarray(response.levels, dt)
     phi_a = _spline_weights(jnp.asarray(a, dt), knots)
     R = jnp.asarray(rows, dt)
+    K = len(aus)
     wj = jnp.asarray(w, dt)
 
     def fun(x):
         c, _, g = _sparse_cost(G, knots, jnp.asarray(x, dt), R, phi_a, wj)
         return float(c), np.asarray(g, np.float64)
 
-    if len(inten):
+    if K:
         sol = minimize(
             fun,
-            np.asarray(inten, np.float64),
+            np.clip(np.asarray(inten, np.float64), 0.0, 1.0),
             jac=True,
             method="L-BFGS-B",
-            bounds=[(0.0, 1.0)] * len(inten),
-            options={"maxiter": 500},
+            bounds=[(0.0, 1.0)] * K,
+            # the misfit is mm^2 and small near a good readout: tolerances far below its scale
+            options={"maxiter": 1000, "ftol": 1e-14, "gtol": 1e-10},
         )
-        x = np.clip(sol.x, 0.0, 1.0)
+        lasso = np.clip(sol.x, 0.0, 1.0)
+        unit = _unit_motion(G, knots, R, jnp.asarray(lasso, dt))
+        u2 = np.maximum(np.asarray(unit, np.float64) ** 2, 1e-30)
+        x = np.where(lasso > 1e-4, np.clip(lasso + w / (2.0 * u2), 0.0, 1.0), 0.0)
     else:
-        x = np.zeros(0)
-    _, mis, _ = _sparse_cost(G, knots, jnp.asarray(x, dt), R, phi_a, wj)
+        lasso = x = np.zeros(0)
+
+    def dist(x1, x2) -> float:
+        return float(_motion_distance(G, knots, R, jnp.asarray(x1, dt), jnp.asarray(x2, dt)))
+
+    def without(x, ks):
+        y = x.copy()
+        y[ks] = 0.0
+        return y
+
+    removal: dict[str, float] = {}
+    while np.any(x > 0.0):
+        removal = {aus[k]: dist(x, without(x, [k])) for k in np.flatnonzero(x > 0.0)}
+        least = min(removal, key=lambda au: removal[au])
+        if removal[least] >= tau:
+            break
+        x = without(x, [aus.index(least)])
+        removal = {}
+    for base in dict.fromkeys(au[:-1] for au in aus if au[-1] in "LR"):
+        sides = [k for k, au in enumerate(aus) if au[:-1] == base and x[k] > 0.0]
+        if len(sides) == 2:
+            removal[base] = dist(x, without(x, sides))
+    _, mis, _ = _sparse_cost(G, knots, jnp.asarray(x, dt), R, phi_a, jnp.asarray(0.0, dt))
     je = np.asarray(jaw, np.float64).ravel()
-    out = au_dict(aus, x, JawPose(float(je[0]), float(je[1]), float(je[2])))
-    return out, float(np.sqrt(max(float(mis), 0.0)))
+    pose = JawPose(float(je[0]), float(je[1]), float(je[2]))
+    return AuReadout(
+        intensities=au_dict(aus, x, pose, cheek_puff),
+        misfit_mm=float(np.sqrt(max(float(mis), 0.0))),
+        removal_mm=sort_aus(removal),
+        lasso=au_dict(aus, lasso, pose, cheek_puff),
+        weight=w,
+        min_motion_mm=tau,
+    )

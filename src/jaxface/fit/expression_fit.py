@@ -33,8 +33,9 @@ JSON_KEYS = (
     "activations",
     "au_intensities",
     "au_intensity_letters",
+    "au_from_activations",
     "au_motion_mm",
-    "au_sparse",
+    "au_readout",
     "jaw",
     "rigid",
     "metrics",
@@ -57,12 +58,16 @@ class ExpressionFit:
         fit: the :class:`~jaxface.fit.solve.PointFit` (neutral frame).
         fitted: the fitted skin, :class:`jaxface.mesh.TriMesh` in the scan's own frame, mm.
         fitted_landmarks: the rig's landmarks on it (scan frame, mm).
-        activations: muscle -> activation; au_intensities: AU -> intensity.
+        activations: muscle -> activation.
+        au_intensities: AU -> intensity in [0, 1]: the fewest AUs that reproduce the fit's
+            skin motion, calibrated (:func:`jaxface.fit.au_motion.read_aus`).
+        au_from_activations: AU -> intensity, the AU table's inverse of the fitted activations
+            (:func:`jaxface.facs.au_intensities`): how hard each AU's muscles work, including
+            controls the motion does not need.
         au_motion_mm: AU -> RMS skin motion (mm) that AU's share of the fit produces alone
-            (:func:`jaxface.fit.au_motion.au_skin_motion`): which AUs the expression *shows*.
-        au_sparse: AU -> intensity of the sparsest AU combination that reproduces the fit's
-            skin motion (:func:`jaxface.fit.au_motion.au_sparse`); au_sparse_misfit_mm: the RMS
-            distance (mm) between that combination's motion and the fit's.
+            (:func:`jaxface.fit.au_motion.au_skin_motion`).
+        au_readout: the :class:`~jaxface.fit.au_motion.AuReadout` behind ``au_intensities``
+            (its misfit and each AU's removal effect, mm), or None.
         metrics: :class:`jaxface.fit.metrics.FitMetrics` of the fit; baselines: ``{"B0":
             FitMetrics, "B1": FitMetrics}``; baseline_meshes: ``{"B0": TriMesh, "B1": TriMesh}``.
         muscle_names: the rig's control order.
@@ -88,8 +93,8 @@ class ExpressionFit:
     options: FitOptions
     notes: list = field(default_factory=list)
     face_mask: np.ndarray | None = None
-    au_sparse: dict = field(default_factory=dict)
-    au_sparse_misfit_mm: float | None = None
+    au_from_activations: dict = field(default_factory=dict)
+    au_readout: Any = None
     quality: Any = None
     arkit: dict | None = None
     arkit_detail: dict = field(default_factory=dict)
@@ -202,8 +207,8 @@ class ExpressionFit:
             "au_intensities": {k: float(v) for k, v in self.au_intensities.items()},
             "au_intensity_letters": intensity_letters(self.au_intensities),
             "au_motion_mm": {k: float(v) for k, v in self.au_motion_mm.items()},
-            "au_sparse": {k: float(v) for k, v in self.au_sparse.items()},
-            "au_sparse_misfit_mm": self.au_sparse_misfit_mm,
+            "au_from_activations": {k: float(v) for k, v in self.au_from_activations.items()},
+            "au_readout": None if self.au_readout is None else self.au_readout.to_dict(),
             "jaw": self.jaw,
             "rigid": self.rigid_dict(),
             "metrics": self.metrics.to_dict(),
@@ -219,16 +224,23 @@ class ExpressionFit:
         self, n: int = 5, *, bilateral_only: bool = False, by: str = "intensity"
     ) -> list[tuple[str, float]]:
         """The ``n`` strongest AUs, strongest first: ``(name, intensity)`` with
-        ``by="intensity"`` (:attr:`au_intensities`), ``(name, mm)`` with ``by="motion"``
-        (:attr:`au_motion_mm`, the skin motion each AU accounts for), ``(name, intensity)``
-        with ``by="sparse"`` (:attr:`au_sparse`, the fewest AUs that reproduce the motion)."""
+        ``by="intensity"`` (:attr:`au_intensities`, the fewest AUs that reproduce the motion),
+        ``(name, mm)`` with ``by="motion"`` (:attr:`au_motion_mm`, the skin motion each AU's
+        share of the activations accounts for), ``(name, intensity)`` with
+        ``by="activations"`` (:attr:`au_from_activations`, the table's inverse of the
+        activations)."""
         srcs = {
             "intensity": self.au_intensities,
             "motion": self.au_motion_mm,
-            "sparse": self.au_sparse,
+            "activations": self.au_from_activations,
         }
+        if by == "sparse":
+            raise ValueError(
+                "by='sparse' is gone: the sparse readout is now au_intensities (by='intensity'); "
+                "the table's inverse of the activations is by='activations'."
+            )
         if by not in srcs:
-            raise ValueError(f"by must be 'intensity', 'motion' or 'sparse', got {by!r}.")
+            raise ValueError(f"by must be 'intensity', 'motion' or 'activations', got {by!r}.")
         src = srcs[by]
         items = [(k, v) for k, v in src.items() if not (bilateral_only and k[-1] in "LR")]
         return sorted(items, key=lambda kv: -kv[1])[:n]

@@ -15,6 +15,7 @@ import numpy as np
 
 __all__ = [
     "AU_SPARSE_WEIGHT",
+    "AU_MIN_MOTION_MM",
     "RESTART_ACTIVATION",
     "RESTART_BOUND_TOL",
     "RESTART_WHEN",
@@ -28,9 +29,14 @@ __all__ = [
     "should_restart",
 ]
 
-#: Default L1 weight of the sparse AU readout (:func:`jaxface.fit.au_motion.au_sparse`), mm^2
-#: of mean squared skin motion per unit intensity.
+#: Default L1 weight of the AU readout's selection step (:func:`jaxface.fit.au_motion.read_aus`),
+#: mm^2 of mean squared skin motion per unit intensity.
 AU_SPARSE_WEIGHT = 0.02
+#: Default pruning threshold of the AU readout (:func:`jaxface.fit.au_motion.read_aus`), mm: an
+#: AU whose removal moves the readout's skin motion by less than this (RMS over the face
+#: region, the rest solved again) is not reported: 0.05 mm is far below what a range scan
+#: resolves (a 0.3-1 mm grid with noise of that order), so such an AU has no visible effect.
+AU_MIN_MOTION_MM = 0.05
 #: An activation at least ``1 - RESTART_BOUND_TOL`` counts as at the upper bound for the
 #: bound-flip restart (:attr:`OuterOptions.restart_iterations`).
 RESTART_BOUND_TOL = 0.02
@@ -206,20 +212,27 @@ class ReadoutOptions:
     """The AU readouts of a fit (they read the fit, they do not change it).
 
     Attributes:
-        au_sparse_weight: L1 weight of the sparse AU readout
-            (:func:`jaxface.fit.au_motion.au_sparse`; mm^2 of mean squared skin motion per unit
+        au_sparse_weight: L1 weight of the AU readout's selection step
+            (:func:`jaxface.fit.au_motion.read_aus`; mm^2 of mean squared skin motion per unit
             intensity, finite and >= 0).
+        au_min_motion_mm: the readout's pruning threshold (mm, finite and >= 0): an AU whose
+            removal moves the readout's skin motion by less than this is not reported.
     """
 
     au_sparse_weight: float = AU_SPARSE_WEIGHT
+    au_min_motion_mm: float = AU_MIN_MOTION_MM
 
     def _check_readout(self) -> None:
-        w = float(self.au_sparse_weight)
-        if not (np.isfinite(w) and w >= 0.0):
-            raise ValueError(
-                f"FitOptions.au_sparse_weight must be a finite number >= 0 (mm^2 per unit "
-                f"intensity), got {self.au_sparse_weight!r}."
-            )
+        for name, unit in (
+            ("au_sparse_weight", "mm^2 per unit intensity"),
+            ("au_min_motion_mm", "mm"),
+        ):
+            v = float(getattr(self, name))
+            if not (np.isfinite(v) and v >= 0.0):
+                raise ValueError(
+                    f"FitOptions.{name} must be a finite number >= 0 ({unit}), "
+                    f"got {getattr(self, name)!r}."
+                )
 
 
 @dataclass(frozen=True)
@@ -236,7 +249,7 @@ class FitOptions(
     :class:`OuterOptions` and :class:`ReadoutOptions` (see each for units and meaning).
 
     Raises:
-        ValueError: ``au_sparse_weight`` not finite and >= 0, ``motion_fraction`` outside
+        ValueError: ``au_sparse_weight`` or ``au_min_motion_mm`` not finite and >= 0, ``motion_fraction`` outside
             [0, 1], ``motion_threshold_mm`` < 0, or ``restart_when`` not in
             :data:`RESTART_WHEN`.
     """

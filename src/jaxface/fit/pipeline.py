@@ -16,7 +16,7 @@ is +x. NumPy orchestration around the JAX solver of :mod:`jaxface.fit.solve`.
    scan's landmark motion), the batched fit (:func:`~jaxface.fit.solve.fit_points`), then per
    scan: the fitted skin moved into the scan's own frame, metrics
    (:func:`jaxface.fit.metrics.fit_metrics`), baselines B0/B1
-   (:mod:`jaxface.fit.baselines`), and the AU readout (:func:`jaxface.facs.au_intensities`).
+   (:mod:`jaxface.fit.baselines`), and the AU readout (:func:`jaxface.fit.au_motion.read_aus`).
 
 :class:`ExpressionFit` writes ``<stem>.json`` and ``<stem>.fitted.ply`` (and optionally a
 before/after picture); the JSON layout is the ``jaxface fit`` contract. The subject lives in
@@ -41,7 +41,7 @@ from ..interop.arkit import readout_for_subject
 from ..io import load_scan
 from ..mesh import TriMesh
 from .align import align_scans
-from .au_motion import au_skin_motion, au_sparse, motion_gram
+from .au_motion import au_skin_motion, motion_gram, read_aus
 from .baselines import baseline_b0, baseline_b1
 from .expression_fit import JSON_KEYS, ExpressionFit
 from .expression_fit import _jsonable as _jsonable  # used by benchmarks/bench_fit.py
@@ -293,7 +293,7 @@ def fit_expressions(
         )
 
     def evaluate(item):
-        s, al, f, motion, sparse = item
+        s, al, f, motion, readout_aus = item
         Ti = al.transform.inverse()
         fitted = TriMesh(Ti.apply(f.skin), tris, validate=False)
         flm = subject.landmarks_on(fitted.vertices)
@@ -326,9 +326,10 @@ def fit_expressions(
             else (None, {})
         )
         je = f.jaw_effective
-        aus = au_intensities(
+        table = au_intensities(
             f.activations, subject.muscle_names, JawPose(float(je[0]), float(je[1]), float(je[2]))
         )
+        aus = readout_aus.intensities
         quality = assess(
             fitted_vertices=fitted.vertices,
             face_mask=reg.face_mask,
@@ -353,9 +354,9 @@ def fit_expressions(
             fitted_landmarks=flm,
             activations=dict(zip(subject.muscle_names, map(float, f.activations))),
             au_intensities=aus,
+            au_from_activations=table,
             au_motion_mm=motion,
-            au_sparse=sparse[0],
-            au_sparse_misfit_mm=sparse[1],
+            au_readout=readout_aus,
             metrics=metrics,
             baselines=base,
             baseline_meshes={"B0": b0m, "B1": b1m},
@@ -384,9 +385,15 @@ def fit_expressions(
                 opt,
                 progress=say,
             )
-            jn = f_n.jaw_effective
-            jaw = JawPose(float(jn[0]), float(jn[1]), float(jn[2]))
-            return au_intensities(f_n.activations, subject.muscle_names, jaw)
+            return read_aus(
+                subject.response,
+                f_n.activations,
+                f_n.jaw_effective,
+                subject.muscle_names,
+                weight=opt.au_sparse_weight,
+                min_motion_mm=opt.au_min_motion_mm,
+                gram=gram,
+            ).intensities
 
         set_noise_floor(subject, opt, self_fit, say)
     for b0 in range(0, len(loaded), bs):
@@ -415,18 +422,21 @@ def fit_expressions(
             au_skin_motion(subject.response, f.activations, f.jaw_effective, subject.muscle_names)
             for f in fits
         ]  # JAX, on this thread (one compilation per subject)
-        sparse = [
-            au_sparse(
+        readouts = [
+            read_aus(
                 subject.response,
                 f.activations,
                 f.jaw_effective,
                 subject.muscle_names,
                 weight=opt.au_sparse_weight,
+                min_motion_mm=opt.au_min_motion_mm,
                 gram=gram,
             )
             for f in fits
         ]
-        for ef in thread_map(evaluate, list(zip(batch, aligns, fits, motions, sparse)), outer=True):
+        for ef in thread_map(
+            evaluate, list(zip(batch, aligns, fits, motions, readouts)), outer=True
+        ):
             results.append(ef)
             if on_result is not None:
                 on_result(ef)
