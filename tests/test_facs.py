@@ -96,8 +96,16 @@ def test_readout_inverts_the_table(names):
 def test_readout_of_jaw_and_emotions(names):
     from jaxface.anatomy.jaw import JawPose
 
+    # the jaw readout inverts the table's jaw: AU26 / AU27 at any intensity, and their pitch
+    for aus in ({"AU26": 0.3}, {"AU26": 1.0}, {"AU27": 1.0}, {"AU26": 0.25, "AU27": 0.75}):
+        _, jaw, _ = facs.aus_to_controls(aus, names)
+        out = facs.au_intensities(np.zeros(len(names)), names, jaw)
+        for au in ("AU26", "AU27"):
+            assert out[au] == pytest.approx(aus.get(au, 0.0), abs=1e-12), (aus, out)
+
     out = facs.au_intensities(np.zeros(len(names)), names, JawPose(14.0, -4.0, 2.5))
-    assert out["AU26"] == pytest.approx(1.0) and out["AU27"] == pytest.approx(0.5)
+    # 14 degrees: half way from AU26's 10 to AU27's 18, read as half of each
+    assert out["AU26"] == pytest.approx(0.5) and out["AU27"] == pytest.approx(0.5)
     assert out["AU29"] == pytest.approx(0.5) and out["AU30R"] == pytest.approx(1.0)
     a, jaw, _ = facs.emotion_controls("surprise", names)
     out = facs.au_intensities(a, names, jaw)

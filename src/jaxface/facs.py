@@ -287,8 +287,10 @@ def au_intensities(
     Muscle AUs: non-negative least squares ``min_i |A^T i - a|``, ``i >= 0`` over the
     unilateral AU variants (:func:`au_matrix`; AUs whose rows duplicate an earlier AU's are
     left out, see the module doc), then clipped to [0, 1]; a bilateral AU is reported as the
-    mean of its sides, and its sides as ``AUxxL`` / ``AUxxR``. Jaw AUs: the opening splits
-    into AU26 (up to 10 degrees) and AU27 (beyond), protrusion gives AU29, yaw AU30
+    mean of its sides, and its sides as ``AUxxL`` / ``AUxxR``. Jaw AUs: an opening ``p`` up
+    to 10 degrees is AU26 ``p / 10``; beyond, AU27 ``t = (p - 10) / 8`` (1 at 18 degrees) and
+    AU26 ``1 - t`` (the two are alternative codes of one opening, and the table's pitch of the
+    pair is ``p``), protrusion gives AU29, yaw AU30
     (``AU30L``/``AU30R`` by direction).
 
     Args:
@@ -319,10 +321,13 @@ def au_dict(aus, values, jaw=None, cheek_puff: float = 0.0) -> dict[str, float]:
         p = float(np.asarray(jaw.pitch_deg))
         y = float(np.asarray(jaw.yaw_deg))
         q = float(np.asarray(jaw.protrusion_mm))
-        out["AU26"] = float(np.clip(p / AU_JAW["AU26"][0], 0.0, 1.0))
-        out["AU27"] = float(
-            np.clip((p - AU_JAW["AU26"][0]) / (AU_JAW["AU27"][0] - AU_JAW["AU26"][0]), 0.0, 1.0)
-        )
+        # AU26 (jaw drop) and AU27 (mouth stretch) are alternative codes of one opening: up
+        # to AU26's pitch it is AU26; beyond, AU27 takes over as AU26 gives way, so that the
+        # table's pitch of the pair, 10 * AU26 + 18 * AU27 degrees, is the opening read
+        p26, p27 = AU_JAW["AU26"][0], AU_JAW["AU27"][0]
+        t = float(np.clip((p - p26) / (p27 - p26), 0.0, 1.0))
+        out["AU26"] = float(np.clip(p / p26, 0.0, 1.0)) - t
+        out["AU27"] = t
         out["AU29"] = float(np.clip(q / AU_JAW["AU29"][2], 0.0, 1.0))
         out["AU30L"] = float(np.clip(y / AU_JAW["AU30"][1], 0.0, 1.0))
         out["AU30R"] = float(np.clip(-y / AU_JAW["AU30"][1], 0.0, 1.0))
