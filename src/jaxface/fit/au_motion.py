@@ -2,7 +2,7 @@
 
 * :func:`read_aus` gives the fit's AU intensities (``ExpressionFit.au_intensities``, the
   headline output): the fewest AUs whose table activations reproduce the fit's *skin motion*,
-  refitted on that support so the intensities are calibrated (a rig driven by the table at
+  calibrated (each kept AU gets its L1 shrinkage back, so a rig driven by the table at
   intensities ``i`` reads ``i`` back), and pruned of AUs whose removal moves the skin by less
   than :data:`AU_MIN_MOTION_MM`. Many activation vectors give nearly the same skin (two
   antagonists held at 1 cancel on the eyelid; a small muscle at 1 moves the skin a
@@ -182,6 +182,12 @@ def _spline_weights(x, knots):
     return W.reshape(-1)
 
 
+def _au_weights(i, rows, knots):
+    """Spline weights (the layout of :func:`motion_gram`) of the table activations
+    ``clip(A^T i, 0, 1)`` of unilateral-AU intensities ``i`` ``(K,)``, rows ``(K, M)``."""
+    return _spline_weights(jnp.clip(i @ rows, 0.0, 1.0), knots)
+
+
 @jax.jit
 def _sparse_cost(G, knots, i, rows, phi_a, weight):
     """Cost of :func:`read_aus` at intensities ``i`` ``(K,)``: ``(cost, mean squared misfit
@@ -189,8 +195,7 @@ def _sparse_cost(G, knots, i, rows, phi_a, weight):
     weights of the fitted activations (the rest state's weights cancel in the difference)."""
 
     def f(i):
-        act = jnp.clip(i @ rows, 0.0, 1.0)
-        d = _spline_weights(act, knots) - phi_a
+        d = _au_weights(i, rows, knots) - phi_a
         mis = d @ (G @ d)
         return mis + weight * jnp.sum(i), mis
 
@@ -203,10 +208,7 @@ def _motion_distance(G, knots, rows, i1, i2):
     """RMS distance (mm) between the skin motions of two unilateral-AU intensity vectors
     ``i1``, ``i2`` ``(K,)`` on the reduced model (the quadratic form of :func:`motion_gram`)."""
 
-    def phi(i):
-        return _spline_weights(jnp.clip(i @ rows, 0.0, 1.0), knots)
-
-    d = phi(i1) - phi(i2)
+    d = _au_weights(i1, rows, knots) - _au_weights(i2, rows, knots)
     return jnp.sqrt(jnp.maximum(d @ (G @ d), 0.0))
 
 
@@ -216,10 +218,7 @@ def _unit_motion(G, knots, rows, x):
     unilateral-AU intensities ``x`` ``(K,)`` (mm), from the Jacobian of the spline weights and
     the Gram matrix."""
 
-    def phi(i):
-        return _spline_weights(jnp.clip(i @ rows, 0.0, 1.0), knots)
-
-    J = jax.jacfwd(phi)(x)  # (M 2N, K)
+    J = jax.jacfwd(_au_weights)(x, rows, knots)  # (M 2N, K)
     return jnp.sqrt(jnp.maximum(jnp.einsum("ak,ab,bk->k", J, G, J), 0.0))
 
 

@@ -292,6 +292,18 @@ def fit_expressions(
             motion_threshold_mm=opt.motion_threshold_mm,
         )
 
+    def read(f):
+        """The AU readout of a fit (:func:`~jaxface.fit.au_motion.read_aus`)."""
+        return read_aus(
+            subject.response,
+            f.activations,
+            f.jaw_effective,
+            subject.muscle_names,
+            weight=opt.au_sparse_weight,
+            min_motion_mm=opt.au_min_motion_mm,
+            gram=gram,
+        )
+
     def evaluate(item):
         s, al, f, motion, readout_aus = item
         Ti = al.transform.inverse()
@@ -385,15 +397,7 @@ def fit_expressions(
                 opt,
                 progress=say,
             )
-            return read_aus(
-                subject.response,
-                f_n.activations,
-                f_n.jaw_effective,
-                subject.muscle_names,
-                weight=opt.au_sparse_weight,
-                min_motion_mm=opt.au_min_motion_mm,
-                gram=gram,
-            ).intensities
+            return read(f_n).intensities
 
         set_noise_floor(subject, opt, self_fit, say)
     for b0 in range(0, len(loaded), bs):
@@ -422,18 +426,7 @@ def fit_expressions(
             au_skin_motion(subject.response, f.activations, f.jaw_effective, subject.muscle_names)
             for f in fits
         ]  # JAX, on this thread (one compilation per subject)
-        readouts = [
-            read_aus(
-                subject.response,
-                f.activations,
-                f.jaw_effective,
-                subject.muscle_names,
-                weight=opt.au_sparse_weight,
-                min_motion_mm=opt.au_min_motion_mm,
-                gram=gram,
-            )
-            for f in fits
-        ]
+        readouts = [read(f) for f in fits]
         for ef in thread_map(
             evaluate, list(zip(batch, aligns, fits, motions, readouts)), outer=True
         ):
