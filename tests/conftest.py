@@ -51,24 +51,103 @@ if os.environ.get("JAXFACE_TEST_INPROCESS_CACHE", "1") == "1":
 
 from jaxface.testing import shared_path  # noqa: E402
 
+#: Seconds each heavy test file took (two workers, 2-core CPU, 2026-12-06; the files not
+#: named took less than 20 s). :func:`pytest_collection_modifyitems` runs the files in this
+#: order, heaviest first, and :func:`pytest_configure` keeps that order under pytest-xdist
+#: (``--no-loadscope-reorder``; by default it hands out files by their number of tests).
+#: With the longest work handed out first, the two workers finish close together
+#: (longest-processing-time-first scheduling) instead of one waiting on the other's last
+#: heavy file. Only the order depends on it; a stale entry costs time, never a test.
+HEAVY_FILES = {
+    "fit/test_solve.py": 600,
+    "anatomy/test_rig.py": 480,
+    "commands/test_cli.py": 270,
+    "fitdb/test_fitdb.py": 260,
+    "anatomy/test_convergence.py": 240,
+    "commands/test_synth.py": 215,
+    "test_pbd.py": 200,
+    "test_notebooks.py": 165,
+    "test_pbd_grad.py": 150,
+    "fit/test_quality.py": 110,
+    "commands/test_fit.py": 100,
+    "ltw/test_ltw.py": 90,
+    "ltw/test_ltw_rig.py": 70,
+    "commands/test_commands.py": 48,
+    "fit/test_register.py": 46,
+    "anatomy/test_muscles.py": 46,
+    "anatomy/test_range.py": 46,
+    "anatomy/test_fuzz_rig.py": 41,
+    "anatomy/test_interface.py": 40,
+    "rbf/test_rbf.py": 36,
+    "fit/test_subject_cache.py": 36,
+    "anatomy/test_muscle_map.py": 30,
+    "detect/test_detect.py": 30,
+    "test_pbd_ict.py": 24,
+    "interop/test_inverse.py": 22,
+    "interop/test_arkit.py": 20,
+}
+_TESTS = Path(__file__).resolve().parent
+
+
+def pytest_configure(config):
+    if hasattr(config.option, "loadscopereorder"):  # pytest-xdist is loaded
+        config.option.loadscopereorder = False
+
+
+def pytest_collection_modifyitems(session, config, items):
+    """Heaviest files first (:data:`HEAVY_FILES`), each file's tests in their own order."""
+
+    def weight(item) -> int:
+        try:
+            rel = Path(str(item.path)).resolve().relative_to(_TESTS).as_posix()
+        except ValueError:
+            return 0
+        return HEAVY_FILES.get(rel, 0)
+
+    items[:] = sorted(items, key=lambda it: -weight(it))  # (a stable sort)
+
 
 def pytest_unconfigure(config):
     if _OWN_CACHE:
         shutil.rmtree(SESSION_CACHE, ignore_errors=True)
 
 
+#: After a module, this process's compiled programs are freed once it holds more memory
+#: mappings than this (``/proc/self/maps``); the kernel's limit is ``vm.max_map_count``
+#: (65,530 by default), and one module (test_pbd, test_pbd_grad) adds up to about 20,000.
+MAX_MAPPINGS_KEPT = 20_000
+#: ... or more resident memory than this, bytes (two test processes share the machine).
+MAX_RSS_KEPT = 5 * 2**30
+
+
+def _mappings_and_rss() -> tuple[int, int] | None:
+    try:
+        with open("/proc/self/maps", "rb") as f:
+            n = sum(1 for _ in f)
+        with open("/proc/self/status") as f:
+            kb = next(int(line.split()[1]) for line in f if line.startswith("VmRSS:"))
+    except (OSError, StopIteration, ValueError, IndexError):  # not Linux
+        return None
+    return n, kb * 1024
+
+
 @pytest.fixture(scope="module", autouse=True)
 def _release_compiled_programs():
-    """Free XLA's compiled programs after each test module. Every compiled CPU program keeps
-    memory mappings for its code, and the whole suite in one process compiles thousands: two
-    modules (test_pbd, test_pbd_grad) reached 20,000 mappings, and past the kernel's
-    vm.max_map_count (65,530) XLA's next compilation crashed the process with a segmentation
-    fault (seen at 87 % of the suite). Modules share few programs, so little is compiled twice."""
+    """Free XLA's compiled programs after a test module when they hold many memory mappings.
+    Every compiled CPU program keeps mappings for its code, and the whole suite in one process
+    compiles thousands: two modules (test_pbd, test_pbd_grad) reached 20,000 mappings, and
+    past the kernel's vm.max_map_count (65,530) XLA's next compilation crashed the process with
+    a segmentation fault (seen at 87 % of the suite). Below :data:`MAX_MAPPINGS_KEPT` (and
+    :data:`MAX_RSS_KEPT`) the programs stay, so the next module reuses what it shares (the
+    default head's synthesis, eager operations) without compiling or loading it again. Where
+    the counts cannot be read, they are freed after every module."""
     yield
-    import gc
+    use = _mappings_and_rss()
+    if use is None or use[0] > MAX_MAPPINGS_KEPT or use[1] > MAX_RSS_KEPT:
+        import gc
 
-    jax.clear_caches()
-    gc.collect()
+        jax.clear_caches()
+        gc.collect()
 
 
 @pytest.fixture

@@ -109,7 +109,7 @@ def test_cli_missing_landmarks_is_a_clear_error(tmp_path):
 
     root = shared_path("data", "bosphorus_style")
     # (a scan without a .lm3 beside it is no error any more: its landmarks are detected, see
-    # tests/detect/test_detect.py::test_cli_fit_on_a_scan_without_landmarks)
+    # test_cli_fit_on_a_scan_without_landmarks)
     # an explicit landmark file that does not exist: missing file (exit code 3)
     proc = _run(
         [
@@ -126,3 +126,26 @@ def test_cli_missing_landmarks_is_a_clear_error(tmp_path):
     assert proc.returncode == 3
     assert "nope.lm3" in proc.stderr
     assert not (tmp_path / "o").exists() or not any((tmp_path / "o").iterdir())
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(1800)
+def test_cli_fit_on_a_scan_without_landmarks(cli_fit, tmp_path):
+    # the expression scan has no .lm3 beside it; the neutral keeps its file. After the module's
+    # fit (``cli_fit``, the same subject options), the subject and its compiled programs come
+    # from the session's caches, and the run pays for the detection and the fit
+    root = cli_fit[0]
+    link = tmp_path / "bs900_LFAU_12_0.bnt"
+    link.symlink_to(root / "bs900_LFAU_12_0.bnt")
+    fast = [*FAST, "--outer-iterations", "1"]  # (the last value of an option wins)
+    proc = _run(
+        ["--neutral", str(root / "bs900_N_N_0.bnt"), "--scan", str(link)]
+        + ["--out", str(tmp_path / "o"), *fast],
+        timeout=1200,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    err = " ".join(proc.stderr.split())  # the note may be wrapped
+    assert "no landmark file for the scan" in err and "detected" in err
+    assert "no landmark file for the neutral" not in err
+    res = json.loads((tmp_path / "o" / "bs900_LFAU_12_0.json").read_text())
+    assert res["au_intensities"]

@@ -1,12 +1,10 @@
 """Automatic landmarks (:mod:`jaxface.detect`, ``jaxface landmarks``, the fit/synth hooks)
 against the ground truth of the shared Bosphorus-style scans and the ICT model: a scan in its
 own frame, the same scan rotated (yaw 30, pitch 20 degrees), a whole ICT head with the eyes
-closed, a mirrored frame (warning), non-face meshes (typed error) and ``jaxface fit`` on a
-scan without a landmark file."""
+closed, a mirrored frame (warning), non-face meshes (typed error). ``jaxface fit`` on a scan without a
+landmark file is tested in tests/commands/test_fit.py, beside the fit whose caches it uses."""
 
 import json
-import subprocess
-import sys
 import warnings
 
 import numpy as np
@@ -182,29 +180,3 @@ def test_fit_loader_detects_forces_and_prefers_an_explicit_file(tmp_path, shared
     link.symlink_to(src)  # no .lm3 beside the link
     beside = _load(link, None, "scan", notice=told.append)
     assert told and beside.landmarks is not None and len(beside.landmarks) >= 15
-
-
-@pytest.mark.slow
-@pytest.mark.timeout(1800)
-def test_cli_fit_on_a_scan_without_landmarks(tmp_path, shared):
-    # the expression scan has no .lm3 beside it; the neutral keeps its file, so the subject
-    # (and, with the same options as tests/commands/test_fit.py, its compiled programs) comes from
-    # the session's caches, and the run pays for the detection and the fit
-    root = shared("data", "bosphorus_style")
-    link = tmp_path / "bs900_LFAU_12_0.bnt"
-    link.symlink_to(root / "bs900_LFAU_12_0.bnt")
-    fast = ["--points", "600", "--outer-iterations", "1", "--levels", "2"]
-    fast += ["--pitch-knots", "6", "--max-steps", "20"]
-    proc = subprocess.run(
-        [sys.executable, "-m", "jaxface.cli", "fit", "--neutral", str(root / "bs900_N_N_0.bnt")]
-        + ["--scan", str(link), "--out", str(tmp_path / "o"), *fast],
-        capture_output=True,
-        text=True,
-        timeout=1200,
-    )
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    err = " ".join(proc.stderr.split())  # the note may be wrapped
-    assert "no landmark file for the scan" in err and "detected" in err
-    assert "no landmark file for the neutral" not in err
-    res = json.loads((tmp_path / "o" / "bs900_LFAU_12_0.json").read_text())
-    assert res["au_intensities"]
