@@ -51,61 +51,6 @@ if os.environ.get("JAXFACE_TEST_INPROCESS_CACHE", "1") == "1":
 
 from jaxface.testing import shared_path  # noqa: E402
 
-#: Seconds each heavy test file took (two workers, 2-core CPU, 2026-12-06; the files not
-#: named took less than 20 s). :func:`pytest_collection_modifyitems` runs the files in this
-#: order, heaviest first, and :func:`pytest_configure` keeps that order under pytest-xdist
-#: (``--no-loadscope-reorder``; by default it hands out files by their number of tests).
-#: With the longest work handed out first, the two workers finish close together
-#: (longest-processing-time-first scheduling) instead of one waiting on the other's last
-#: heavy file. Only the order depends on it; a stale entry costs time, never a test.
-HEAVY_FILES = {
-    "fit/test_solve.py": 600,
-    "anatomy/test_rig.py": 480,
-    "commands/test_cli.py": 270,
-    "fitdb/test_fitdb.py": 260,
-    "anatomy/test_convergence.py": 240,
-    "commands/test_synth.py": 215,
-    "test_pbd.py": 200,
-    "test_notebooks.py": 165,
-    "test_pbd_grad.py": 150,
-    "fit/test_quality.py": 110,
-    "commands/test_fit.py": 100,
-    "ltw/test_ltw.py": 90,
-    "ltw/test_ltw_rig.py": 70,
-    "commands/test_commands.py": 48,
-    "fit/test_register.py": 46,
-    "anatomy/test_muscles.py": 46,
-    "anatomy/test_range.py": 46,
-    "anatomy/test_fuzz_rig.py": 41,
-    "anatomy/test_interface.py": 40,
-    "rbf/test_rbf.py": 36,
-    "fit/test_subject_cache.py": 36,
-    "anatomy/test_muscle_map.py": 30,
-    "detect/test_detect.py": 30,
-    "test_pbd_ict.py": 24,
-    "interop/test_inverse.py": 22,
-    "interop/test_arkit.py": 20,
-}
-_TESTS = Path(__file__).resolve().parent
-
-
-def pytest_configure(config):
-    if hasattr(config.option, "loadscopereorder"):  # pytest-xdist is loaded
-        config.option.loadscopereorder = False
-
-
-def pytest_collection_modifyitems(session, config, items):
-    """Heaviest files first (:data:`HEAVY_FILES`), each file's tests in their own order."""
-
-    def weight(item) -> int:
-        try:
-            rel = Path(str(item.path)).resolve().relative_to(_TESTS).as_posix()
-        except ValueError:
-            return 0
-        return HEAVY_FILES.get(rel, 0)
-
-    items[:] = sorted(items, key=lambda it: -weight(it))  # (a stable sort)
-
 
 def pytest_unconfigure(config):
     if _OWN_CACHE:

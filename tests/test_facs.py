@@ -135,3 +135,32 @@ def test_intensity_letters_follow_the_facs_bins():
     assert intensity_letters({"AU12": 0.8, "AU6": 0.05, "AU1": 0.3}) == {"AU12": "D", "AU1": "B"}
     with pytest.raises(ValueError, match="finite"):
         intensity_letter(float("nan"))
+
+
+def test_sided_aus_code_even_aus_once_and_uneven_ones_per_side():
+    vals = {
+        "AU12": 0.3,  # one-sided smile: L 0.6, R 0
+        "AU12L": 0.6,
+        "AU12R": 0.0,
+        "AU1": 0.7,  # even brow raise
+        "AU1L": 0.72,
+        "AU1R": 0.68,
+        "AU4": 0.2,  # uneven frown: both sides listed
+        "AU4L": 0.35,
+        "AU4R": 0.05,
+        "AU26": 0.5,  # the jaw: no sides
+        "AU15": 0.002,  # below the floor
+        "AU15L": 0.002,
+        "AU15R": 0.002,
+    }
+    got = facs.sided_aus(vals)
+    assert got == [("AU1", 0.7), ("AU12L", 0.6), ("AU26", 0.5), ("AU4L", 0.35), ("AU4R", 0.05)]
+    assert facs.sided_aus(vals, 2) == got[:2]
+    # the tolerance decides: at 0.3 the frown is even and listed once, bilaterally
+    assert ("AU4", 0.2) in facs.sided_aus(vals, asymmetry=0.3)
+    assert ("AU15", 0.002) in facs.sided_aus(vals, floor=0.0)
+    assert facs.sided_aus({"AU9L": 0.4}) == [("AU9L", 0.4)]  # a side without its bilateral key
+    with pytest.raises(ValueError, match="finite"):
+        facs.sided_aus({"AU1": float("nan")})
+    with pytest.raises(ValueError, match=">= 0"):
+        facs.sided_aus(vals, asymmetry=-0.1)

@@ -45,6 +45,7 @@ __all__ = [
     "INTENSITY_LETTERS",
     "intensity_letter",
     "intensity_letters",
+    "sided_aus",
     "sort_aus",
 ]
 
@@ -370,3 +371,49 @@ def intensity_letters(intensities: dict) -> dict[str, str]:
         if letter is not None:
             out[k] = letter
     return out
+
+
+_SIDED_RE = re.compile(r"^(AU\d+)([LR])?$")
+
+
+def sided_aus(
+    values: dict, n: int | None = None, *, asymmetry: float = 0.1, floor: float = 0.005
+) -> list[tuple[str, float]]:
+    """The AUs of ``{AU: value}`` as FACS codes them, strongest first: an AU whose sides differ
+    by at most ``asymmetry`` (in the values' unit: intensity, or mm of motion) appears once,
+    bilateral (``"AU12"``, its bilateral value); a one-sided or uneven AU appears per side
+    (``"AU12L"``, ``"AU12R"``, each side at or above ``floor``). AUs without sides (the jaw's
+    AU26, AU27) appear as they are. Values below ``floor`` are left out.
+
+    Args:
+        values: ``{AU: value}`` with bilateral keys and, where the AU has sides, ``"...L"`` /
+            ``"...R"`` keys (:attr:`jaxface.fit.ExpressionFit.au_intensities`).
+        n: at most this many (None: all).
+        asymmetry: largest ``|L - R|`` still coded bilateral, >= 0.
+        floor: smallest value listed, >= 0.
+
+    Raises:
+        ValueError: a negative ``asymmetry`` or ``floor``, or a non-finite value.
+    """
+    if not (asymmetry >= 0.0 and floor >= 0.0):
+        raise ValueError(f"asymmetry and floor must be >= 0, got {asymmetry} and {floor}.")
+    vals = {k: float(v) for k, v in values.items()}
+    bad = [k for k, v in vals.items() if not np.isfinite(v)]
+    if bad:
+        raise ValueError(f"AU values must be finite: {bad}.")
+    out = []
+    for k, v in vals.items():
+        m = _SIDED_RE.match(k)
+        au, side = (m.group(1), m.group(2)) if m else (k, None)
+        if side is not None:
+            if au not in vals:  # a side without its bilateral key stands alone
+                out.append((k, v))
+            continue
+        left, right = vals.get(au + "L"), vals.get(au + "R")
+        if left is None or right is None or abs(left - right) <= asymmetry:
+            out.append((k, v))
+        else:
+            out += [(au + "L", left), (au + "R", right)]
+    out = [(k, v) for k, v in out if v >= floor]
+    out.sort(key=lambda kv: -kv[1])
+    return out if n is None else out[: max(int(n), 0)]

@@ -197,9 +197,9 @@ def _scan_and_fit(rig, head, out: Path, say, timings) -> list[dict]:
                 "activations_true": {n: float(v) for n, v in zip(names, a_true) if v > 0},
                 "activations_fit": {n: r.activations[n] for n in big},
                 "max_activation_error": float(np.abs(a_fit - a_true).max()),
-                "strongest_aus": r.strongest_aus(4, bilateral_only=False),
-                "most_visible_aus_mm": r.strongest_aus(4, bilateral_only=True, by="motion"),
-                "aus_from_activations": r.strongest_aus(4, bilateral_only=True, by="activations"),
+                "strongest_aus": r.strongest_aus(4, sided=True),
+                "most_visible_aus_mm": r.strongest_aus(4, by="motion", sided=True),
+                "aus_from_activations": r.strongest_aus(4, by="activations", sided=True),
                 "files": {k: str(Path(v).relative_to(out)) for k, v in files.items()},
             }
         )

@@ -256,6 +256,10 @@ def test_au_readout_of_the_round_trip_names_its_aus(round_trip):
     assert set(top) == {"AU12", "AU1", "AU26"}, top
     assert abs(aus["AU12L"] - TRUE["zygomaticus_major_L"]) < 0.05, aus["AU12L"]
     assert abs(aus["AU12R"] - TRUE["zygomaticus_major_R"]) < 0.05, aus["AU12R"]
+    # as FACS codes it: the uneven smile (0.6 / 0.45) per side, the even brow raise once
+    sided = dict(res.strongest_aus(5, sided=True))
+    assert {"AU12L", "AU12R", "AU1", "AU26"} <= set(sided), sided
+    assert not {"AU12", "AU1L", "AU1R"} & set(sided), sided
     assert res.au_readout is not None and 0.0 <= res.au_readout.misfit_mm < 0.5
     doc = res.to_dict()
     assert doc["au_intensities"] == pytest.approx(aus)

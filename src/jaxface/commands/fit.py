@@ -509,12 +509,9 @@ def register(app: typer.Typer) -> None:
         for r in results:
             aus = ", ".join(
                 f"{k} {v:.2f} {intensity_letter(v) or '-'}"
-                for k, v in r.strongest_aus(3, bilateral_only=True)
-                if v > 0.0
+                for k, v in r.strongest_aus(3, sided=True)
             )
-            vis = ", ".join(
-                f"{k} {v:.2f}" for k, v in r.strongest_aus(3, bilateral_only=True, by="motion")
-            )
+            vis = ", ".join(f"{k} {v:.2f}" for k, v in r.strongest_aus(3, by="motion", sided=True))
             table.add_row(
                 r.stem,
                 r.status if r.status == "successful" else f"[yellow]{r.status}[/]",

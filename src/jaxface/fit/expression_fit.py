@@ -14,7 +14,7 @@ import numpy as np
 from ..anatomy.frame import face_axes
 from ..atomic import ensure_out_dir, write_json_atomic
 from ..errors import LandmarkError
-from ..facs import intensity_letters
+from ..facs import intensity_letters, sided_aus
 from ..mesh import save_mesh
 from ..render import Layer, draw, save_figure
 from .metrics import SurfaceIndex
@@ -221,14 +221,22 @@ class ExpressionFit:
         }
 
     def strongest_aus(
-        self, n: int = 5, *, bilateral_only: bool = False, by: str = "intensity"
+        self,
+        n: int = 5,
+        *,
+        bilateral_only: bool = False,
+        by: str = "intensity",
+        sided: bool = False,
     ) -> list[tuple[str, float]]:
         """The ``n`` strongest AUs, strongest first: ``(name, intensity)`` with
         ``by="intensity"`` (:attr:`au_intensities`, the fewest AUs that reproduce the motion),
         ``(name, mm)`` with ``by="motion"`` (:attr:`au_motion_mm`, the skin motion each AU's
         share of the activations accounts for), ``(name, intensity)`` with
         ``by="activations"`` (:attr:`au_from_activations`, the table's inverse of the
-        activations)."""
+        activations). ``bilateral_only`` leaves the ``L``/``R`` entries out; ``sided`` lists
+        the AUs as FACS codes them (:func:`jaxface.facs.sided_aus`: once where both sides
+        agree within 0.1, else per side; none below 0.005), and overrides
+        ``bilateral_only``."""
         srcs = {
             "intensity": self.au_intensities,
             "motion": self.au_motion_mm,
@@ -242,6 +250,8 @@ class ExpressionFit:
         if by not in srcs:
             raise ValueError(f"by must be 'intensity', 'motion' or 'activations', got {by!r}.")
         src = srcs[by]
+        if sided:
+            return sided_aus(src, n)
         items = [(k, v) for k, v in src.items() if not (bilateral_only and k[-1] in "LR")]
         return sorted(items, key=lambda kv: -kv[1])[:n]
 
