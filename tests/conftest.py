@@ -57,42 +57,18 @@ def pytest_unconfigure(config):
         shutil.rmtree(SESSION_CACHE, ignore_errors=True)
 
 
-#: After a module, this process's compiled programs are freed once it holds more memory
-#: mappings than this (``/proc/self/maps``); the kernel's limit is ``vm.max_map_count``
-#: (65,530 by default), and one module (test_pbd, test_pbd_grad) adds up to about 20,000.
-MAX_MAPPINGS_KEPT = 20_000
-#: ... or more resident memory than this, bytes (two test processes share the machine).
-MAX_RSS_KEPT = 5 * 2**30
-
-
-def _mappings_and_rss() -> tuple[int, int] | None:
-    try:
-        with open("/proc/self/maps", "rb") as f:
-            n = sum(1 for _ in f)
-        with open("/proc/self/status") as f:
-            kb = next(int(line.split()[1]) for line in f if line.startswith("VmRSS:"))
-    except (OSError, StopIteration, ValueError, IndexError):  # not Linux
-        return None
-    return n, kb * 1024
-
-
 @pytest.fixture(scope="module", autouse=True)
 def _release_compiled_programs():
-    """Free XLA's compiled programs after a test module when they hold many memory mappings.
-    Every compiled CPU program keeps mappings for its code, and the whole suite in one process
-    compiles thousands: two modules (test_pbd, test_pbd_grad) reached 20,000 mappings, and
-    past the kernel's vm.max_map_count (65,530) XLA's next compilation crashed the process with
-    a segmentation fault (seen at 87 % of the suite). Below :data:`MAX_MAPPINGS_KEPT` (and
-    :data:`MAX_RSS_KEPT`) the programs stay, so the next module reuses what it shares (the
-    default head's synthesis, eager operations) without compiling or loading it again. Where
-    the counts cannot be read, they are freed after every module."""
+    """Free XLA's compiled programs after each test module. Every compiled CPU program keeps
+    memory mappings for its code, and the whole suite in one process compiles thousands: two
+    modules (test_pbd, test_pbd_grad) reached 20,000 mappings, and past the kernel's
+    vm.max_map_count (65,530) XLA's next compilation crashed the process with a segmentation
+    fault (seen at 87 % of the suite). Modules share few programs, so little is compiled twice."""
     yield
-    use = _mappings_and_rss()
-    if use is None or use[0] > MAX_MAPPINGS_KEPT or use[1] > MAX_RSS_KEPT:
-        import gc
+    import gc
 
-        jax.clear_caches()
-        gc.collect()
+    jax.clear_caches()
+    gc.collect()
 
 
 @pytest.fixture
