@@ -373,9 +373,6 @@ def intensity_letters(intensities: dict) -> dict[str, str]:
     return out
 
 
-_SIDED_RE = re.compile(r"^(AU\d+)([LR])?$")
-
-
 def sided_aus(
     values: dict, n: int | None = None, *, asymmetry: float = 0.1, floor: float = 0.005
 ) -> list[tuple[str, float]]:
@@ -403,8 +400,8 @@ def sided_aus(
         raise ValueError(f"AU values must be finite: {bad}.")
     out = []
     for k, v in vals.items():
-        m = _SIDED_RE.match(k)
-        au, side = (m.group(1), m.group(2)) if m else (k, None)
+        m = _AU_RE.match(k)
+        au, side = (f"AU{int(m.group(1))}", m.group(2)) if m else (k, None)
         if side is not None:
             if au not in vals:  # a side without its bilateral key stands alone
                 out.append((k, v))

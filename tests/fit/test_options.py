@@ -49,6 +49,7 @@ DEFAULTS = {
     "converge_activation": 5e-3,
     "converge_jaw": 0.05,
     "converge_cost": 0.01,
+    "converge_cost_mm2": 1e-4,
     "au_sparse_weight": 0.02,
     "au_min_motion_mm": 0.05,
 }

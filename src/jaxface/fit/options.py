@@ -175,7 +175,11 @@ class OuterOptions:
         converge_activation: a run still converges while an activation moves by more than this
             (unit activation) ...
         converge_jaw: ... or pitch / yaw by more than this (deg) or protrusion (mm) ...
-        converge_cost: ... *and* its inner cost falls by more than this (relative).
+        converge_cost: ... *and* its inner cost falls by more than this (relative) ...
+        converge_cost_mm2: ... and by more than this (absolute, mm^2; the cost is a mean of
+            squared distances). 1e-4 mm^2 is ``converge_cost`` of a cost of (0.1 mm)^2, a range
+            scanner's noise: it acts only on fits already that close (synthetic scans), whose
+            cost keeps falling by a few 1e-5 mm^2 an iteration without changing the face.
         restart_iterations: outer iterations of the bound-flip restart (0 = off): a run with
             activations at the upper bound (within :data:`RESTART_BOUND_TOL`) restarts with
             them at :data:`RESTART_ACTIVATION` and every activation free; the lower final cost
@@ -189,6 +193,7 @@ class OuterOptions:
     converge_activation: float = 5e-3
     converge_jaw: float = 0.05
     converge_cost: float = 0.01
+    converge_cost_mm2: float = 1e-4
     restart_iterations: int = 2
     restart_when: str = "unconverged"
 

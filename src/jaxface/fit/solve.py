@@ -302,7 +302,8 @@ class _Fit:
 
     def step_and_track(self, k: int, act: list[int]) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`outer_step`, and whether each run is still converging: its inner cost fell
-        by more than ``converge_cost`` and its parameters moved by more than their
+        by more than ``converge_cost`` (relative) and ``converge_cost_mm2`` (absolute) and its
+        parameters moved by more than their
         tolerances, or its active set still changed in the iteration's last round, or its
         inner solve stopped at ``max_steps``."""
         opt = self.opt
@@ -321,6 +322,7 @@ class _Fit:
                         or np.max(np.abs(j1 - j0)) > opt.converge_jaw
                     )
                     and gain > opt.converge_cost
+                    and rp.cost0 - rp.cost > opt.converge_cost_mm2
                 )
                 or run.last_changes > 0
                 or rp.result == "nonlinear_max_steps_reached"
