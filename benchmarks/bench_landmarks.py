@@ -96,11 +96,12 @@ def bench_detection(stems, root: Path) -> dict:
                     "seconds": dt,
                     "errors_mm": err,
                     "omitted": det.omitted,
+                    "jaw_opening_deg": det.jaw_opening_deg,
                 }
             )
             print(
-                f"{stem:22s} {pose:18s} {dt:5.1f} s  mean {np.mean(e):5.2f}  max {np.max(e):5.2f} "
-                f"mm  missed {[n for n in truth.names if n not in det.landmarks]}"
+                f"{stem:22s} {pose:18s} {dt:5.1f} s  jaw {det.jaw_opening_deg:4.1f}  mean "
+                f"{np.mean(e):5.2f}  max {np.max(e):5.2f} mm  missed {[n for n in truth.names if n not in det.landmarks]}"
             )
     summary = {}
     for pose in POSES:

@@ -57,6 +57,7 @@ def test_detects_the_bosphorus_landmarks_of_a_scan_without_landmarks(scan_and_de
     assert all(0.0 <= c <= 1.0 for c in det.confidence.values())
     check_side(det.landmarks)  # jaxface frame: no mirror problem
     assert det.side_problem is None
+    assert det.jaw_opening_deg == 0.0  # a neutral keeps the template's closed jaw
     assert np.allclose(det.pose.up, [0, 1, 0], atol=0.1)
     assert np.allclose(det.pose.forward, [0, 0, 1], atol=0.1)
 
@@ -117,6 +118,67 @@ def test_whole_ict_head_with_the_eyes_closed(shared):
     assert np.mean([err[n] for n in eyes]) < 3.0, err
     rest = [e for n, e in err.items() if "nose peak" not in n]  # see the upright test
     assert np.mean(rest) < 3.5, err
+
+
+def test_the_template_opens_its_jaw_as_far_as_the_scan():
+    """The articulated template (:func:`choose_jaw_opening`): a face whose jaw is open 15
+    degrees (the template itself opened about its hinge, then turned and moved) is matched
+    by the 15 degree template, with a better pose score than the closed one, and the
+    detected chin sits on the opened chin."""
+    from jaxface.detect.pose import estimate_pose
+    from jaxface.detect.transfer import JAW_OPENINGS_DEG, choose_jaw_opening, face_template
+    from jaxface.fit.metrics import SurfaceIndex
+    from jaxface.io.preprocess import RigidTransform
+
+    tpl = face_template()
+    assert 15.0 in JAW_OPENINGS_DEG
+    opened = tpl.opened(15.0)
+    moved = opened.landmarks["Chin middle"] - tpl.landmarks["Chin middle"]
+    assert moved[1] < -15.0 and moved[2] < 0.0  # the chin goes down and back
+    assert np.array_equal(opened.mesh.triangles, tpl.mesh.triangles)
+    upper = tpl.jaw_weight == 0.0
+    assert np.array_equal(
+        np.asarray(opened.mesh.vertices)[upper], np.asarray(tpl.mesh.vertices)[upper]
+    )
+    T = RigidTransform(rotation_from_euler(10.0, -20.0), np.array([5.0, -3.0, 40.0]))
+    v = T.apply(np.asarray(opened.mesh.vertices))
+    index = SurfaceIndex(v, np.asarray(opened.mesh.triangles))
+    pose = estimate_pose(index, np.asarray(tpl.mesh.vertices), tpl.normals, tpl.nose_tip)
+    deg, best, scores = choose_jaw_opening(index, pose, tpl)
+    assert deg == 15.0, scores
+    assert scores[15.0] < scores[0.0]
+    det = detect_landmarks((v, np.asarray(opened.mesh.triangles)))
+    assert det.jaw_opening_deg == 15.0
+    assert (
+        np.linalg.norm(
+            det.landmarks["Chin middle"] - T.apply(opened.landmarks["Chin middle"][None])[0]
+        )
+        < 3.0
+    )
+
+
+def test_the_ict_face_with_its_jaw_open(shared):
+    """ICT-FaceKit's scan-based ``jawOpen`` (the chin 42 mm down; not our hinge): the
+    template opens its jaw, which keeps the pose on the upper face: the eye corners and the
+    upper lip stay within 3 mm and the mouth corners within 7 mm (the closed template,
+    dragged down by the open mouth, left the mouth corners 12 mm off)."""
+    d = np.load(shared("data", "ict", "ict_face.npz"))
+    ids = json.loads(shared("data", "bosphorus_style", "truth.json").read_text())[
+        "landmark_vertex_ids_ict"
+    ]
+    names = [str(n) for n in d["expression_names"]]
+    v = d["neutral"] + d["expression_deltas"][names.index("jawOpen")]
+    groups = [str(g) for g in d["group_names"]]
+    keep = np.isin(d["triangle_group"], [groups.index("face"), groups.index("head_neck")])
+    det = detect_landmarks((v, d["triangles"][keep]))
+    assert det.jaw_opening_deg >= 5.0
+    err = {
+        n: float(np.linalg.norm(det.landmarks[n] - v[ids[n]])) for n in det.landmarks if n in ids
+    }
+    eyes = [err[n] for n in err if "eye corner" in n]
+    assert len(eyes) == 4 and max(eyes) < 3.0, err
+    assert err["Upper lip outer middle"] < 3.0, err
+    assert err["Left mouth corner"] < 7.0 and err["Right mouth corner"] < 7.0, err
 
 
 def test_mirrored_frame_warns_and_labels_by_anatomy(scan_and_detection):

@@ -452,6 +452,29 @@ def test_outer_iterations_go_on_until_the_fit_has_converged(round_trip):
         assert abs(res.activations[n] - v) < 0.05, (n, res.activations[n], v)
 
 
+def test_a_fit_whose_cost_falls_by_less_than_the_absolute_floor_has_converged(round_trip):
+    """The outer loop's absolute floor (``converge_cost_mm2``). Two annealed iterations leave
+    this fit far from converged, and with the default floor it goes on with extra iterations
+    (:func:`test_outer_iterations_go_on_until_the_fit_has_converged`). With a floor above
+    every gain (1 mm^2, against costs of 1e-2 mm^2 and below here) no iteration counts as
+    still converging: the same fit ends after its two annealed iterations."""
+    import dataclasses
+
+    from jaxface.fit.pipeline import fit_expressions
+
+    subject, _, _, opt, expr = round_trip[:5]
+    floor = dataclasses.replace(
+        opt,
+        outer_iterations=2,
+        extra_iterations=12,
+        restart_iterations=0,
+        converge_cost_mm2=1.0,
+    )
+    (cut,) = fit_expressions(subject, [expr], options=floor)
+    assert len(cut.fit.reports) == 2, cut.solver_dict()
+    assert cut.fit.reports[-1].cost < 1.0
+
+
 def test_a_fit_whose_active_set_still_changes_goes_on(round_trip):
     """One outer iteration with one active-set round cannot settle this fit's bounds: it must
     not say ``successful``. With extra iterations the fit goes on until an iteration leaves

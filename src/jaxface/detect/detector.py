@@ -27,7 +27,7 @@ from ..landmarks import BOSPHORUS_LABELS, FACE_LABELS, Landmarks, check_side
 from .pose import PoseEstimate, estimate_pose
 from .refine import Placement, place_landmarks
 from .slits import refine_slits, scan_rim_vertices
-from .transfer import face_template, transfer_landmarks
+from .transfer import choose_jaw_opening, face_template, transfer_landmarks
 
 __all__ = ["JAW_FOLLOWERS", "Detection", "MirroredScanWarning", "detect_landmarks", "scan_arrays"]
 
@@ -49,6 +49,8 @@ class Detection:
         omitted: label -> reason it was left out.
         pose: the coarse pose (template -> scan similarity; up / forward / left vectors).
         registration: the registration of the default head's face that carried them.
+        jaw_opening_deg: how far the template's jaw was opened before the registration
+            (:func:`jaxface.detect.transfer.choose_jaw_opening`), degrees.
         seconds: wall time, s.
         side_problem: the side-check message when the frame looks mirrored, else ``None``.
     """
@@ -58,6 +60,7 @@ class Detection:
     omitted: dict[str, str]
     pose: PoseEstimate
     registration: Registration | None = field(repr=False, default=None)
+    jaw_opening_deg: float = 0.0
     seconds: float = 0.0
     side_problem: str | None = None
 
@@ -76,6 +79,7 @@ class Detection:
                 "median_residual_mm": self.pose.median_mm,
                 "matched_fraction": self.pose.matched,
             },
+            "jaw_opening_deg": self.jaw_opening_deg,
             "side_problem": self.side_problem,
             "seconds": self.seconds,
         }
@@ -112,6 +116,9 @@ def detect_landmarks(scan, *, warn: bool = True, refine: bool = True) -> Detecti
     index = SurfaceIndex(v, f)
     tpl = face_template()
     pose = estimate_pose(index, np.asarray(tpl.mesh.vertices), tpl.normals, tpl.nose_tip)
+    opening, pose, _ = choose_jaw_opening(index, pose, tpl)
+    if opening:
+        tpl = tpl.opened(opening)
     reg = transfer_landmarks(index, pose.transform, tpl)
     names = list(FACE_LABELS)
     guesses = reg.landmarks.array(names)
@@ -181,6 +188,7 @@ def detect_landmarks(scan, *, warn: bool = True, refine: bool = True) -> Detecti
         omitted={n: str(placed[n].reason) for n in order if n not in vis},
         pose=pose,
         registration=reg,
+        jaw_opening_deg=float(opening),
         seconds=time.perf_counter() - t0,
         side_problem=side,
     )

@@ -38,7 +38,14 @@ from ..fit.align import robust_icp, rotation_from_euler
 from ..fit.metrics import SurfaceIndex
 from ..io.preprocess import RigidTransform
 
-__all__ = ["NoFaceFoundError", "PoseEstimate", "estimate_pose", "principal_frame_rotations"]
+__all__ = [
+    "NoFaceFoundError",
+    "PoseEstimate",
+    "estimate_pose",
+    "refine_pose",
+    "pose_score",
+    "principal_frame_rotations",
+]
 
 #: acceptance of the final rigid fit: median residual (mm), matched fraction, scale range
 MAX_MEDIAN_MM = 2.5
@@ -110,12 +117,50 @@ def _tip(points: np.ndarray, centre: np.ndarray, forward: np.ndarray) -> np.ndar
     return points[i]
 
 
+def refine_pose(
+    index: SurfaceIndex,
+    points: np.ndarray,
+    normals: np.ndarray,
+    init: RigidTransform,
+    iterations: int = 25,
+) -> tuple[float, RigidTransform, float, float] | None:
+    """The fine stage of :func:`estimate_pose` from one start: robust point-to-plane ICP with a
+    uniform scale of template ``points`` ``(K, 3)`` mm (unit ``normals``) onto the scan.
+
+    Returns:
+        ``(score, transform, median residual mm, matched fraction)`` (:func:`pose_score`;
+        lower is better), or ``None`` when the ICP fails.
+    """
+    try:
+        T, st = robust_icp(
+            points,
+            index,
+            init=init,
+            moving_normals=normals,
+            similarity=True,
+            iterations=iterations,
+            max_distance=8.0,
+            trim=0.1,
+            name="pose",
+        )
+    except FitError:
+        return None
+    sc, matched = _score(st)
+    return sc, T, float(st.residual.median), matched
+
+
+def pose_score(median_mm: float, matched: float) -> float:
+    """The pose's score (lower is better): the median residual (mm) plus 6 mm per unit of
+    the matched fraction below 0.85."""
+    return median_mm + 6.0 * max(0.0, 0.85 - matched)
+
+
 def _score(stage) -> tuple[float, float]:
     matched = stage.n_inliers / max(stage.n_points, 1)
     med = float(stage.residual.median)
     if not np.isfinite(med):
         med = float("inf")
-    return med + 6.0 * max(0.0, 0.85 - matched), matched
+    return pose_score(med, matched), matched
 
 
 def estimate_pose(
@@ -204,23 +249,9 @@ def estimate_pose(
     trials.sort(key=lambda t: t[0])
     best: tuple[float, RigidTransform, float, float] | None = None
     for _, T0 in trials[:3]:
-        try:
-            T, st = robust_icp(
-                template_points[fine],
-                index,
-                init=T0,
-                moving_normals=template_normals[fine],
-                similarity=True,
-                iterations=25,
-                max_distance=8.0,
-                trim=0.1,
-                name="pose",
-            )
-        except FitError:
-            continue
-        sc, matched = _score(st)
-        if best is None or sc < best[0]:
-            best = (sc, T, float(st.residual.median), matched)
+        r = refine_pose(index, template_points[fine], template_normals[fine], T0)
+        if r is not None and (best is None or r[0] < best[0]):
+            best = r
     if best is None:
         raise NoFaceFoundError(
             "no face found: the rigid fit of the default head's face did not converge on this "

@@ -19,14 +19,30 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..anatomy.frame import face_frame
+from ..anatomy.jaw import JawModel, JawPose
+from ..anatomy.rig_build import jaw_follow_weights
 from ..fit.metrics import SurfaceIndex
 from ..fit.register import RegisterOptions, Registration, register_template
 from ..head import generic_head
 from ..io.preprocess import RigidTransform
 from ..landmarks import FACE_LABELS, Landmarks
 from ..mesh import TriMesh
+from .pose import PoseEstimate, pose_score, refine_pose
 
-__all__ = ["FaceTemplate", "face_template", "transfer_landmarks", "TRANSFER_OPTIONS"]
+__all__ = [
+    "FaceTemplate",
+    "face_template",
+    "transfer_landmarks",
+    "choose_jaw_opening",
+    "TRANSFER_OPTIONS",
+    "JAW_OPENINGS_DEG",
+]
+
+#: jaw openings (degrees about the hinge) tried for the template, closed first
+JAW_OPENINGS_DEG = (0.0, 5.0, 10.0, 15.0, 20.0)
+#: an opening is taken only when its pose score beats the closed jaw's by more than this (mm)
+JAW_MARGIN_MM = 0.15
 
 #: registration schedule of the transfer (coarse to 4 mm; no landmark pull)
 TRANSFER_OPTIONS = RegisterOptions(
@@ -52,6 +68,12 @@ class FaceTemplate:
         nose_tip: ``(3,)`` mm.
         regions: ``(V,)`` bool masks named as :attr:`jaxface.head.Head.regions` (restricted
             to the face).
+        jaw_weight: ``(V,)`` in [0, 1], how far each vertex follows the mandible
+            (:func:`jaxface.anatomy.rig_build.jaw_follow_weights` with the lower lip on the
+            mandible, halved toward the mouth corners, which move about half as far).
+        landmark_jaw_weight: ``(22,)`` the same at the landmarks (their nearest vertex).
+        jaw: the head's :class:`~jaxface.anatomy.jaw.JawModel` (opening up to 30 degrees).
+        opening_deg: the jaw opening of this template, degrees (0: the head as built).
     """
 
     mesh: TriMesh
@@ -60,6 +82,36 @@ class FaceTemplate:
     normals: np.ndarray
     nose_tip: np.ndarray
     regions: dict
+    jaw_weight: np.ndarray
+    landmark_jaw_weight: np.ndarray
+    jaw: JawModel
+    opening_deg: float = 0.0
+
+    def opened(self, degrees: float) -> FaceTemplate:
+        """This template with the jaw opened by ``degrees`` about the hinge (from the head as
+        built): each vertex moves by its ``jaw_weight`` times the mandible's motion."""
+        pose = JawPose(float(degrees), 0.0, 0.0)
+        R, t = (np.asarray(a, np.float64) for a in self.jaw.transform(pose))
+        base = self if self.opening_deg == 0.0 else face_template()
+
+        def move(x, w):
+            return x + w[:, None] * (x @ R.T + t - x)
+
+        v = move(np.asarray(base.mesh.vertices), base.jaw_weight)
+        mesh = TriMesh(v, base.mesh.triangles, validate=False)
+        lm = base.landmarks.with_positions(move(base.landmarks.positions, base.landmark_jaw_weight))
+        return FaceTemplate(
+            mesh=mesh,
+            landmarks=lm,
+            ear_lobes=base.ear_lobes,
+            normals=np.asarray(mesh.vertex_normals),
+            nose_tip=base.nose_tip,
+            regions=base.regions,
+            jaw_weight=base.jaw_weight,
+            landmark_jaw_weight=base.landmark_jaw_weight,
+            jaw=base.jaw,
+            opening_deg=float(degrees),
+        )
 
 
 @functools.lru_cache(maxsize=1)
@@ -71,6 +123,17 @@ def face_template() -> FaceTemplate:
     lm = head.landmarks.subset(FACE_LABELS)
     ears = head.landmarks.subset(("Left ear lobe", "Right ear lobe"))
     regions = {k: np.asarray(m, bool)[ids] for k, m in head.regions.items()}
+    frame = face_frame(head.landmarks)
+    x = np.asarray(sub.vertices)
+    lip = regions["lower_lip"]
+    w = jaw_follow_weights(x, lip, frame)
+    loc = frame.to_local(x)
+    half = np.abs(frame.to_local(np.asarray(lm["Left mouth corner"]))[0])
+    taper = 1.0 - 0.5 * np.clip(np.abs(loc[:, 0]) / max(half, 1e-9), 0.0, 1.0) ** 2
+    w = np.where(lip, w * taper, w)
+    near = np.argmin(
+        np.linalg.norm(x[None, :, :] - np.asarray(lm.positions)[:, None, :], axis=2), axis=1
+    )
     return FaceTemplate(
         mesh=sub,
         landmarks=lm,
@@ -78,7 +141,50 @@ def face_template() -> FaceTemplate:
         normals=np.asarray(sub.vertex_normals),
         nose_tip=np.array(lm["Nose tip"]),
         regions=regions,
+        jaw_weight=w,
+        landmark_jaw_weight=w[near],
+        jaw=JawModel.from_landmarks(head.landmarks, pitch_limits=(-4.0, 30.0)),
     )
+
+
+def choose_jaw_opening(
+    index: SurfaceIndex,
+    pose: PoseEstimate,
+    template: FaceTemplate | None = None,
+    openings: tuple[float, ...] = JAW_OPENINGS_DEG,
+    *,
+    seed: int = 0,
+) -> tuple[float, PoseEstimate, dict[float, float]]:
+    """The jaw opening of the template that best matches the scan, with its pose.
+
+    The coarse pose (:func:`jaxface.detect.pose.estimate_pose`, closed jaw) starts, for each
+    opening, the fine pose stage (:func:`jaxface.detect.pose.refine_pose`) of the opened
+    template; the opening with the lowest pose score (:func:`jaxface.detect.pose.pose_score`:
+    median residual, mm, plus a penalty for an unmatched face) wins. The closed jaw is kept
+    unless an opening scores better by more than :data:`JAW_MARGIN_MM`.
+
+    Returns:
+        ``(degrees, pose for that opening, {degrees: score})``.
+    """
+    tpl = template or face_template()
+    k = len(tpl.mesh.vertices)
+    fine = np.random.default_rng(seed).choice(k, min(k, 1500), replace=False)
+    closed = pose_score(pose.median_mm, pose.matched)
+    scores: dict[float, float] = {0.0: closed}
+    best = (closed, 0.0, pose)
+    for deg in openings:
+        if not deg:
+            continue
+        t = tpl.opened(deg)
+        r = refine_pose(
+            index, np.asarray(t.mesh.vertices)[fine], t.normals[fine], pose.transform, 15
+        )
+        if r is None:
+            continue
+        scores[float(deg)] = r[0]
+        if r[0] < best[0] and closed - r[0] > JAW_MARGIN_MM:
+            best = (r[0], float(deg), PoseEstimate(r[1], r[2], r[3], pose.starts))
+    return best[1], best[2], scores
 
 
 def transfer_landmarks(
