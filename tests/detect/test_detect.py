@@ -221,6 +221,7 @@ def test_cli_writes_lm3_json_and_picture(tmp_path, shared):
         "Right ear lobe",
     }
     assert out.with_suffix(".png").stat().st_size > 10_000
+    assert info["jaw_opening_deg"] in (0.0, 5.0, 10.0, 15.0, 20.0)
     truth = read_lm3(src.with_suffix(".lm3"))
     err = [np.linalg.norm(lm[n] - truth[n]) for n in lm.names if n in truth]
     assert np.median(err) < 4.0
