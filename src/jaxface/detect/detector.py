@@ -1,8 +1,10 @@
 """Automatic Bosphorus landmarks on a scan without a landmark file.
 
 Units mm; the landmarks are returned in the scan's own frame, whatever it is. Pipeline
-(:func:`detect_landmarks`): coarse pose (:mod:`jaxface.detect.pose`), registration of the
-default head's face and landmark transfer (:mod:`jaxface.detect.transfer`), eye and
+(:func:`detect_landmarks`): coarse pose (:mod:`jaxface.detect.pose`), the template's jaw
+opened as far as the scan's (:func:`jaxface.detect.transfer.choose_jaw_opening`),
+registration of the default head's face and landmark transfer
+(:mod:`jaxface.detect.transfer`), eye and
 mouth refinement on the scan's relief (:mod:`jaxface.detect.slits`), surface snap, nose tip,
 visibility and confidence (:mod:`jaxface.detect.refine`), then the side check:
 the labels follow the detected anatomy (the subject's left is ``up x forward``), so when they
