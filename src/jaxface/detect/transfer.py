@@ -15,7 +15,7 @@ part. The smoothing schedule stops at 4 mm: finer detail is the job of the local
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -73,7 +73,6 @@ class FaceTemplate:
             mandible, halved toward the mouth corners, which move about half as far).
         landmark_jaw_weight: ``(22,)`` the same at the landmarks (their nearest vertex).
         jaw: the head's :class:`~jaxface.anatomy.jaw.JawModel` (opening up to 30 degrees).
-        opening_deg: the jaw opening of this template, degrees (0: the head as built).
     """
 
     mesh: TriMesh
@@ -85,32 +84,28 @@ class FaceTemplate:
     jaw_weight: np.ndarray
     landmark_jaw_weight: np.ndarray
     jaw: JawModel
-    opening_deg: float = 0.0
 
     def opened(self, degrees: float) -> FaceTemplate:
-        """This template with the jaw opened by ``degrees`` about the hinge (from the head as
-        built): each vertex moves by its ``jaw_weight`` times the mandible's motion."""
-        pose = JawPose(float(degrees), 0.0, 0.0)
-        R, t = (np.asarray(a, np.float64) for a in self.jaw.transform(pose))
-        base = self if self.opening_deg == 0.0 else face_template()
+        """This template with the jaw opened by ``degrees`` about the hinge: each vertex (and
+        landmark) moves by its jaw weight times the mandible's motion. Open the closed
+        template (:func:`face_template`); the weights describe its geometry."""
+        R, t = (np.asarray(a, np.float64) for a in self.jaw.transform(JawPose(float(degrees))))
 
         def move(x, w):
             return x + w[:, None] * (x @ R.T + t - x)
 
-        v = move(np.asarray(base.mesh.vertices), base.jaw_weight)
-        mesh = TriMesh(v, base.mesh.triangles, validate=False)
-        lm = base.landmarks.with_positions(move(base.landmarks.positions, base.landmark_jaw_weight))
-        return FaceTemplate(
+        mesh = TriMesh(
+            move(np.asarray(self.mesh.vertices), self.jaw_weight),
+            self.mesh.triangles,
+            validate=False,
+        )
+        return replace(
+            self,
             mesh=mesh,
-            landmarks=lm,
-            ear_lobes=base.ear_lobes,
+            landmarks=self.landmarks.with_positions(
+                move(self.landmarks.positions, self.landmark_jaw_weight)
+            ),
             normals=np.asarray(mesh.vertex_normals),
-            nose_tip=base.nose_tip,
-            regions=base.regions,
-            jaw_weight=base.jaw_weight,
-            landmark_jaw_weight=base.landmark_jaw_weight,
-            jaw=base.jaw,
-            opening_deg=float(degrees),
         )
 
 

@@ -303,9 +303,8 @@ class _Fit:
     def step_and_track(self, k: int, act: list[int]) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`outer_step`, and whether each run is still converging: its inner cost fell
         by more than ``converge_cost`` (relative) and ``converge_cost_mm2`` (absolute) and its
-        parameters moved by more than their
-        tolerances, or its active set still changed in the iteration's last round, or its
-        inner solve stopped at ``max_steps``."""
+        parameters moved by more than their tolerances, or its active set still changed in the
+        iteration's last round, or its inner solve stopped at ``max_steps``."""
         opt = self.opt
         before = [self.params_of(self.runs[i]) for i in act]
         cost = self.outer_step(k, act)
