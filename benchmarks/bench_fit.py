@@ -602,6 +602,11 @@ def main() -> None:
         "--sweeps (default: build_rig's 32/8)",
     )
     ap.add_argument(
+        "--no-cheek-puff",
+        action="store_true",
+        help="fit the muscles and the jaw only (SubjectOptions.cheek_puff=False)",
+    )
+    ap.add_argument(
         "--results",
         default=None,
         help="folder of the JSON and the picture (default benchmarks/results)",
@@ -647,11 +652,12 @@ def main() -> None:
         except RigError as e:
             ap.error(str(e))
         rig_kwargs = dict(muscle_iterations=m, skin_iterations=k, skin_chebyshev_rho=rho)
-    subject_options = SubjectOptions(rig_kwargs=rig_kwargs)
+    subject_options = SubjectOptions(rig_kwargs=rig_kwargs, cheek_puff=not args.no_cheek_puff)
     report = {
         "machine": _machine(),
         "options": {k: (list(v) if isinstance(v, tuple) else v) for k, v in opt.__dict__.items()},
         "rig_kwargs": rig_kwargs,
+        "cheek_puff": not args.no_cheek_puff,
         "subjects": [],
     }
     error_maps = []

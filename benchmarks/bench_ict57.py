@@ -7,6 +7,7 @@ Run from the repository root (needs ``ict_face.npz`` and ``truth.json`` of the s
     python benchmarks/bench_ict57.py [--identities 0,1,2] [--scan exact|virtual|both]
                                      [--expressions NAME,...] [--batch 8] [--results DIR]
                                      [--muscle-map PATH | --range-variant] [--tag NAME]
+                                     [--no-cheek-puff]
 
 ``--muscle-map`` builds the subjects' rigs from another muscle map, ``--range-variant`` from
 the default map with :data:`jaxface.anatomy.muscle_map.RANGE_EDITS` (the pursing orbicularis
@@ -261,6 +262,11 @@ def main(argv=None):
         help="a build_rig option for the rigs, e.g. jaw_pitch_limits_deg=[-4,28] (repeatable)",
     )
     p.add_argument("--pitch-knots", type=int, default=None, help="SubjectOptions.pitch_knots")
+    p.add_argument(
+        "--no-cheek-puff",
+        action="store_true",
+        help="fit the muscles and the jaw only (SubjectOptions.cheek_puff=False)",
+    )
     a = p.parse_args(argv)
     ict = load_ict()
     lm_ids = load_truth().landmark_vertex_ids
@@ -295,9 +301,12 @@ def main(argv=None):
     sk: dict = {"rig_kwargs": rig_kwargs} if rig_kwargs else {}
     if a.pitch_knots is not None:
         sk["pitch_knots"] = a.pitch_knots
+    if a.no_cheek_puff:
+        sk["cheek_puff"] = False
     sopt = SubjectOptions(**sk) if sk else None
     results["rig_options"] = {k: v for k, v in rig_kwargs.items() if k != "muscle_map"}
     results["pitch_knots"] = a.pitch_knots
+    results["cheek_puff"] = not a.no_cheek_puff
     opt = FitOptions()
     for k in ids:
         res = run_identity(ict, lm_ids, k, kinds, exprs, a.batch, opt, sopt)

@@ -4,7 +4,9 @@
 activation of the muscles of the default map (:mod:`jaxface.anatomy.muscle_map`, base names;
 a bilateral muscle means both its ``_L`` and ``_R`` controls). ``AU12L`` / ``AU12R`` are the
 unilateral variants (the subject's left is +x). Jaw AUs move the jaw (:data:`AU_JAW`), AU33/34
-set the cheek puff. Lip AUs 18, 22, 23 and 28 all act through the single orbicularis oris
+set the cheek puff: a separate pressure for a rig, or, where the control names include the
+fit's two cheek pressures (:data:`jaxface.anatomy.cheek_puff.PUFF_CONTROLS`), those controls
+(``AU34L`` / ``AU34R`` one cheek). Lip AUs 18, 22, 23 and 28 all act through the single orbicularis oris
 sphincter of the map (with different intensities), so they are not separable from muscle
 activations: the readout attributes that sphincter to AU23 (plus AU24 where the mentalis
 joins it).
@@ -26,6 +28,7 @@ import re
 
 import numpy as np
 
+from .anatomy.cheek_puff import PUFF_CONTROLS
 from .anatomy.jaw import JawPose
 from .errors import RigError
 
@@ -147,10 +150,16 @@ def parse_aus(specs) -> dict[str, float]:
 def expand_au(au: str, muscle_names) -> dict[str, float]:
     """Controls of one AU at intensity 1: ``{control name: activation}`` for the rig's
     ``muscle_names`` (bilateral muscles on both sides, or one side for ``AUxxL``/``AUxxR``;
-    a mid-line muscle gets half the weight in a unilateral AU)."""
+    a mid-line muscle gets half the weight in a unilateral AU). AU33/34 give the cheek
+    pressures where ``muscle_names`` include :data:`~jaxface.anatomy.cheek_puff.PUFF_CONTROLS`."""
     base, side = _canon(au)
     names = set(muscle_names)
     out: dict[str, float] = {}
+    if base in AU_PUFF and set(PUFF_CONTROLS) <= names:
+        # the fit's cheek-pressure controls (jaxface.anatomy.cheek_puff), one per cheek
+        for n, s in zip(PUFF_CONTROLS, ("L", "R")):
+            if side in (None, s):
+                out[n] = AU_PUFF[base]
     for m, w in AU_MUSCLES.get(base, {}).items():
         if m in names:
             out[m] = out.get(m, 0.0) + (w if side is None else 0.5 * w)
@@ -176,7 +185,7 @@ def au_matrix(muscle_names, aus=None) -> tuple[list[str], np.ndarray]:
     names = list(muscle_names)
     if aus is None:
         aus = []
-        for base in AU_MUSCLES:
+        for base in (*AU_MUSCLES, "AU34"):  # AU34: the cheeks' pressures, where controls
             row = expand_au(base, names)
             if not row:
                 continue
@@ -199,7 +208,9 @@ def aus_to_controls(aus: dict, muscle_names):
 
     Returns:
         ``(activations (M,) in [0, 1], JawPose, cheek_puff)``; contributions add up and are
-        clipped to [0, 1] (jaw: to its limits by the jaw model).
+        clipped to [0, 1] (jaw: to its limits by the jaw model). Where ``muscle_names``
+        include the cheek pressures (:data:`~jaxface.anatomy.cheek_puff.PUFF_CONTROLS`) the
+        puff is in the activations and ``cheek_puff`` is 0.
     """
     names = list(muscle_names)
     a = np.zeros(len(names))
@@ -215,7 +226,8 @@ def aus_to_controls(aus: dict, muscle_names):
             if base == "AU30" and side == "R":
                 j[1] = -j[1]
             jaw += v * j
-        puff += v * AU_PUFF.get(base, 0.0)
+        if not set(PUFF_CONTROLS) <= set(names):  # else the puff is in ``a`` (expand_au)
+            puff += v * AU_PUFF.get(base, 0.0)
     return (
         np.clip(a, 0.0, 1.0),
         JawPose(float(jaw[0]), float(jaw[1]), float(jaw[2])),

@@ -88,6 +88,29 @@ def test_both_backends_share_the_control_accessors_and_checks(pbd_rig, ltw_rig):
             rig.synthesize(jnp.zeros(rig.n_controls), 4.0)
 
 
+def test_both_backends_puff_each_cheek_on_its_own(pbd_rig, ltw_rig):
+    """``cheek_puff=[left, right]``: ``[p, p]`` is the scalar ``p`` to the digit, ``[p, 0]``
+    moves the left cheek (+x) as the bilateral puff does and leaves the right one, and a
+    pressure of another shape is refused."""
+    for rig in (pbd_rig, ltw_rig):
+        a = jnp.zeros(rig.n_controls)
+
+        def puff(*p):  # one compiled synthesis per pressure shape
+            return np.asarray(rig.synthesize(a, None, jnp.array(p if len(p) > 1 else p[0])))
+
+        x0, both, left = puff(0.0, 0.0), puff(0.6, 0.6), puff(0.6, 0.0)
+        np.testing.assert_array_equal(puff(0.6), both)
+        d_both = np.linalg.norm(both - x0, axis=1)
+        d_left = np.linalg.norm(left - x0, axis=1)
+        on_left = np.asarray(rig.rest)[:, 0] > 0
+        assert d_both[on_left].max() > 1e-3 and d_both[~on_left].max() > 1e-3, rig.backend
+        # the puffed cheek moves as in the bilateral puff, the other one barely moves
+        assert d_left[on_left].max() > 0.9 * d_both[on_left].max(), rig.backend
+        assert d_left[~on_left].max() < 0.1 * d_both[~on_left].max(), rig.backend
+        with pytest.raises(RigError, match=r"\[left, right\]"):
+            rig.synthesize(a, None, jnp.zeros(3))
+
+
 def test_rig_field_layouts_and_build_records(pbd_rig, ltw_rig):
     # the shared base adds no field: each rig's pytree layout is its own (rigs cross jit/vmap)
     def layout(rig):
@@ -96,7 +119,7 @@ def test_rig_field_layouts_and_build_records(pbd_rig, ltw_rig):
     tail = [("muscle_names", True), ("muscle_aus", True), ("info", True)]
     assert layout(pbd_rig) == [("jaw", False), ("muscles", False), ("skin", False)] + tail
     lids = ["lid_nodes", "lid_fall", "lid_upper", "lid_side", "lid_pivot", "lid_axis"]
-    ltw_fields = ["model", "jaw", *lids, "lid_angles", "puff_field", "puff_force"]
+    ltw_fields = ["model", "jaw", *lids, "lid_angles", "puff_field", "puff_left", "puff_force"]
     assert layout(ltw_rig) == [(n, False) for n in ltw_fields] + [("n_steps", True)] + tail
     # build records: compared by identity, so a copy with the same record keeps the jit cache
     # key and one with an equal but new record does not

@@ -807,7 +807,10 @@ def test_bound_flip_restart_leaves_a_minimum_with_a_saturated_control(default_ri
         rig,
         scan_skin(np.asarray(rig.rest), bound),
         face_mask=head.face_mask,
-        options=SubjectOptions(),
+        # the muscles and the jaw: the numerical path the docstring measured (with the two
+        # cheek pressures as controls too, the same start takes another path and ends with
+        # one activation 0.4 from the truth)
+        options=SubjectOptions(cheek_puff=False),
     )
     (res,) = fit_expressions(
         subject,
@@ -837,6 +840,43 @@ def test_bound_flip_restart_leaves_a_minimum_with_a_saturated_control(default_ri
     for n in subject.muscle_names:
         if n not in corner:
             assert abs(res.activations[n] - truth.get(n, 0.0)) < 0.1, (n, res.activations[n])
+
+
+def test_round_trip_recovers_a_one_sided_cheek_puff(default_rig):
+    """The two cheeks' pressures are controls of the fit (SubjectOptions.cheek_puff, the
+    default): a scan of the default head with the left cheek puffed (0.5) beside a left smile
+    (zygomaticus major L 0.3) is fitted back with the right cheek's pressure at 0, AU34L read
+    as the puff (AU34R not), and the JSON names both pressures with the activations."""
+    from jaxface.anatomy.jaw import JawPose
+    from jaxface.anatomy.rig import synthesize
+    from jaxface.fit.pipeline import SubjectOptions, fit_expressions, subject_from_rig
+    from jaxface.head import generic_head
+    from jaxface.io.scanner import SkinLandmarks, scan_skin
+
+    head = generic_head()
+    rig = default_rig
+    bound = SkinLandmarks.of_rig(rig)
+    controls = ("zygomaticus_major_L", "buccinator_L", "cheek_puff_L", "cheek_puff_R")
+    a = rig.activations({"zygomaticus_major_L": 0.3})
+    x = np.asarray(synthesize(rig, a, JawPose(), jnp.array([0.5, 0.0])))
+    neutral, expr = scan_skin(np.asarray(rig.rest), bound), scan_skin(x, bound)
+    opt = FitOptions(
+        n_points=800, outer_iterations=4, max_steps=40, jaw_starts=(0.0,), controls=controls
+    )
+    sopt = SubjectOptions(levels=2, pitch_knots=6, controls=controls)
+    subject = subject_from_rig(rig, neutral, face_mask=head.face_mask, options=sopt)
+    assert subject.muscle_names[-2:] == ("cheek_puff_L", "cheek_puff_R")
+    (res,) = fit_expressions(subject, [expr], options=opt)
+    assert res.status == "successful", res.solver_dict()
+    assert res.metrics.scan_to_fit["all"].mean < 0.1
+    assert abs(res.activations["cheek_puff_L"] - 0.5) < 0.05, res.activations
+    assert res.activations["cheek_puff_R"] < 0.05, res.activations
+    assert abs(res.activations["zygomaticus_major_L"] - 0.3) < 0.05, res.activations
+    aus = res.au_intensities
+    assert abs(aus["AU34L"] - 0.5) < 0.1 and aus["AU34R"] < 0.05, aus
+    assert "AU34L" in dict(res.strongest_aus(2, sided=True))
+    doc = res.to_dict()
+    assert doc["activations"]["cheek_puff_L"] == res.activations["cheek_puff_L"]
 
 
 def test_forward_many_equals_single_syntheses_for_any_batch_size(round_trip):

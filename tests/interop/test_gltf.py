@@ -99,7 +99,8 @@ def test_check_catches_a_malformed_document():
 # ------------------------------------------------------------------------------ rig export
 @pytest.fixture(scope="module")
 def head_export(tmp_path_factory):
-    """The default head's rig exported with two controls, one AU and two fits (a JSON +
+    """The default head's rig exported with three controls (two muscles, the left cheek's
+    pressure), one AU and two fits (a JSON +
     fitted PLY each, in a scan frame rotated and shifted from the rig's) as exact targets."""
     import jax.numpy as jnp
 
@@ -113,16 +114,17 @@ def head_export(tmp_path_factory):
     subj = load_export_subject("default")
     rig = subj.rig
     names = list(rig.muscle_names)
-    controls = [n for n in names if n.startswith("zygomaticus_major")][:2]
+    controls = [n for n in names if n.startswith("zygomaticus_major")][:2] + ["cheek_puff_L"]
     fits = []
     skins = {}
-    for k, (stem, acts, pitch) in enumerate(
-        [("s_smile", {controls[0]: 0.8}, 0.0), ("s_open", {controls[1]: 0.3}, 9.0)]
+    for k, (stem, acts, pitch, puff) in enumerate(
+        [("s_smile", {controls[0]: 0.8}, 0.0, 0.0), ("s_open", {controls[1]: 0.3}, 9.0, 0.5)]
     ):
         a = np.zeros(len(names))
         for n, v in acts.items():
             a[names.index(n)] = v
-        x = np.asarray(synthesize(rig, jnp.asarray(a, rig.rest.dtype), JawPose(pitch, 0.0, 0.0)))
+        p = jnp.array([puff, 0.0], rig.rest.dtype)  # the fit's cheek pressures, left and right
+        x = np.asarray(synthesize(rig, jnp.asarray(a, rig.rest.dtype), JawPose(pitch, 0.0, 0.0), p))
         R = rotation_from_euler(4.0 + k, -3.0)
         t = np.array([1.5, -2.0, 3.0 * k])
         save_mesh(tmp / f"{stem}.fitted.ply", x @ R.T + t, rig.triangles, units="mm")
@@ -130,7 +132,8 @@ def head_export(tmp_path_factory):
             json.dumps(
                 {
                     "scan": stem,
-                    "activations": {n: float(v) for n, v in zip(names, a)},
+                    "activations": {n: float(v) for n, v in zip(names, a)}
+                    | {"cheek_puff_L": puff, "cheek_puff_R": 0.0},
                     "jaw": {"pitch_deg": pitch},
                     "rigid": {"rig_to_scan": {"rotation": R.tolist(), "translation": t.tolist()}},
                 }
@@ -165,6 +168,11 @@ def test_head_export_targets_names_and_parts(head_export):
     )
     np.testing.assert_allclose(r["deltas"][0], (x - subj.rest) / 1000, atol=1e-7)
     assert np.abs(r["deltas"][0]).max() > 1e-3  # the smile moves the skin by millimetres
+    # the left cheek's pressure at 1, as the fit's control cheek_puff_L
+    p = jnp.array([1.0, 0.0], subj.rig.rest.dtype)
+    x = np.asarray(synthesize(subj.rig, jnp.zeros_like(jnp.asarray(a)), JawPose(0.0, 0.0, 0.0), p))
+    np.testing.assert_allclose(r["deltas"][2], (x - subj.rest) / 1000, atol=1e-7)
+    assert np.abs(r["deltas"][2]).max() > 1e-3
     scene = trimesh.load_scene(str(out))
     assert {"skin", "eye_left", "eye_right", "upper_teeth", "lower_teeth"} <= set(scene.geometry)
 
@@ -188,7 +196,7 @@ def test_activation_keyframes(head_export, tmp_path):
     res = run_export(subj, tmp_path / "b.glb", fits=fits, exact=False, controls=controls, aus=False)
     r = morph_targets_of(load_glb(str(tmp_path / "b.glb")))
     assert r["names"] == [f"muscle.{c}" for c in controls]
-    np.testing.assert_allclose(r["weights"], [[0.8, 0.0], [0.0, 0.3]], atol=1e-7)
+    np.testing.assert_allclose(r["weights"], [[0.8, 0.0, 0.0], [0.0, 0.3, 0.5]], atol=1e-7)
     assert any("--exact" in n for n in res["notes"])
 
 

@@ -93,7 +93,7 @@ class FaceRig(Protocol):
     def synthesize(self, activations, jaw=None, cheek_puff=0.0) -> jax.Array:
         """Quasi-static synthesis: ``(M,)`` activations in [0, 1], a
         :class:`~jaxface.anatomy.jaw.JawPose` (neutral if None) and the cheek puff in [0, 1]
-        -> ``(V, 3)`` skin, mm. Jit-compiled, vmap- and grad-able."""
+        (or ``[left, right]``) -> ``(V, 3)`` skin, mm. Jit-compiled, vmap- and grad-able."""
         ...
 
 

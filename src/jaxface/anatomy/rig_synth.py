@@ -196,7 +196,7 @@ def equilibrium_gap(
         rig: a :class:`Rig` (the PBD backend).
         activations: ``(M,)`` in [0, 1], ordered as ``rig.muscle_names``.
         jaw: :class:`JawPose` (degrees, mm); neutral if None.
-        cheek_puff: AU33/34 pressure in [0, 1].
+        cheek_puff: AU33/34 pressure in [0, 1], or ``[left, right]``.
         sweeps: static ``(muscle, skin)`` plain sweeps of the continuation. 1,000 skin sweeps
             are slow enough to show a creeping buckle (a plain 64-sweep solve of a smile on
             the ICT face still moves 0.34 mm in them) and cheap next to a deep solve.
@@ -240,7 +240,8 @@ def synthesize(rig: Rig, activations, jaw: JawPose | None = None, cheek_puff=0.0
         activations: ``(M,)`` in [0, 1], ordered as ``rig.muscle_names``.
         jaw: :class:`JawPose` (degrees, mm; smoothly clamped to the limits); neutral if None.
         cheek_puff: AU33/34 air pressure in [0, 1] (outward cheek displacement of
-            ``puff_mm`` at 1; 0 = off).
+            ``puff_mm`` at 1; 0 = off), or ``[left, right]`` for each cheek on its own
+            (:mod:`jaxface.anatomy.cheek_puff`).
 
     Returns:
         ``(V, 3)`` skin vertices, mm.

@@ -15,6 +15,7 @@ from .._arrays import to_jax
 from ..errors import RigError
 from ..mesh import TriMesh
 from ..rigid import rotate_about_axes
+from .cheek_puff import cheek_bump, puff_scale
 from .frame import FaceFrame
 from .geometry import smooth_normals
 from .skin_binding import Binding
@@ -53,7 +54,8 @@ class SkinSystem(eqx.Module):
         anchors: the engine's anchor group of every vertex (stiffness ``(V,)``; targets set
             per solve from :func:`skin_targets`).
         lid_ids, lid_fall, lid_pivot, lid_axis, lid_ctrl_angles: eyelids.
-        puff_dir: ``(V, 3)`` cheek-puff displacement per unit pressure, mm.
+        puff_dir: ``(V, 3)`` cheek-puff displacement per unit pressure, mm; puff_left:
+            ``(V,)`` bool, the left cheek's part (:mod:`jaxface.anatomy.cheek_puff`).
         mem_ids, mem_border, mem_H: the unsupported skin whose targets are interpolated from
             its border (:func:`membrane_interpolation`): ``(F,)``, ``(B,)``, ``(F, B)``.
         fat_tri, fat_area0, fat_gain, fat_ratio: the fat layer (:func:`fat_thickness`):
@@ -90,6 +92,7 @@ class SkinSystem(eqx.Module):
     lid_axis: jax.Array
     lid_angles: jax.Array
     puff_dir: jax.Array
+    puff_left: jax.Array
     mem_ids: jax.Array
     mem_border: jax.Array
     mem_H: jax.Array
@@ -267,14 +270,7 @@ def build_skin_system(
         anchor_k[li] = np.maximum(anchor_k[li], lid_stiffness * np.concatenate(lid_fall))
     # cheek puff: outward along the normal, weighted by a cheek bump around the buccal area
     n0 = smooth_normals(skin, 3)
-    bump = np.zeros(V)
-    for sgn in (1.0, -1.0):
-        c = frame.to_world([sgn * 42.0, -58.0, 0.0])
-        loc = frame.to_local(x)
-        cl = frame.to_local(c)
-        r2 = ((loc[:, 0] - cl[0]) / 22.0) ** 2 + ((loc[:, 1] - cl[1]) / 20.0) ** 2
-        side_ok = (loc[:, 0] * sgn) > 8.0
-        bump = np.maximum(bump, np.where(side_ok, np.exp(-r2 * 2.0), 0.0))
+    bump, puff_left = cheek_bump(x, frame)
     puff = (puff_mm * frame.mean_scale) * bump[:, None] * n0 * infl[:, None]
     up_g, up_planes = _hull_group(teeth[0], x, 20.0 * frame.mean_scale, V, inv_mass, 0.3)
     lo_g, lo_planes = _hull_group(teeth[1], x, 30.0 * frame.mean_scale, V, inv_mass, 0.3)
@@ -312,6 +308,7 @@ def build_skin_system(
         lid_axis=to_jax(np.stack(axs) if axs else np.zeros((0, 3))),
         lid_angles=to_jax(np.stack(angs) if angs else np.zeros((0, 1, 2))),
         puff_dir=to_jax(puff),
+        puff_left=to_jax(puff_left),
         mem_ids=to_jax(mem_ids),
         mem_border=to_jax(mem_border),
         mem_H=to_jax(mem_H),
@@ -369,7 +366,7 @@ def skin_targets(sk: SkinSystem, G, activations, cheek_puff: jax.typing.ArrayLik
             p0, sk.lid_pivot.astype(dt)[sk.lid_side], sk.lid_axis.astype(dt)[sk.lid_side], per
         )
         disp = disp.at[sk.lid_ids].add(rot - p0)
-    disp = disp + jnp.asarray(cheek_puff, dt) * sk.puff_dir.astype(dt)
+    disp = disp + puff_scale(cheek_puff, sk.puff_left, dt) * sk.puff_dir.astype(dt)
     return rest + disp
 
 

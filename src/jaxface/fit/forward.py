@@ -1,5 +1,8 @@
 """The exact forward model: the rig's quasi-static synthesis, ``(a (M,), jaw (3,)) -> (V, 3)`` mm.
 
+The fit's controls ``a`` are the rig's muscle activations, followed, by default, by the two
+cheeks' pressures :data:`jaxface.anatomy.cheek_puff.PUFF_CONTROLS` (AU34), all in [0, 1].
+
 The fit evaluates it once per scan and outer iteration (the defect of the reduced model, and
 with the gradient correction one reverse-mode pass through it), and, with
 ``FitOptions.exact_steps``, differentiates it in forward mode.
@@ -15,6 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..anatomy.cheek_puff import PUFF_CONTROLS
 from ..anatomy.interface import FaceRig
 from ..anatomy.jaw import JawPose
 from ..errors import FitError, RigError
@@ -23,10 +27,14 @@ from ..validate import traced_checks
 __all__ = ["ForwardModel", "synthesis_function", "exact_skin_and_vjp"]
 
 
-def synthesis_function(rig: FaceRig) -> Callable:
+def synthesis_function(rig: FaceRig, cheek_puff: bool = False) -> Callable:
     """``(a (M,), jaw (3,)) -> (V, 3)`` mm for a rig of either backend (a PBD
     :class:`~jaxface.anatomy.rig.Rig` or an LTW :class:`~jaxface.ltw.rig.LTWRig`: its
     :meth:`~jaxface.anatomy.interface.FaceRig.synthesize`).
+
+    With ``cheek_puff``, ``a`` has ``rig.n_controls + 2`` entries: the muscles, then the left
+    and right cheeks' pressures (:data:`~jaxface.anatomy.cheek_puff.PUFF_CONTROLS`), passed
+    to the rig as ``cheek_puff=[left, right]``.
 
     Traced without the rig's run-time input check (:func:`jaxface.validate.traced_checks`):
     a program that contains it has a host callback, and JAX never keeps such a program in its
@@ -34,8 +42,12 @@ def synthesis_function(rig: FaceRig) -> Callable:
     (:class:`ForwardModel`), and the fit's solvers keep their controls finite and bounded;
     a non-finite input gives a NaN skin."""
 
+    M = int(rig.n_controls)
+
     def fn(a, j):
         with traced_checks(False):
+            if cheek_puff:
+                return rig.synthesize(a[:M], JawPose.from_array(j), a[M:])
             return rig.synthesize(a, JawPose.from_array(j))
 
     return fn
@@ -66,6 +78,12 @@ class ForwardModel:
     Arguments:
         rig: a :class:`jaxface.anatomy.rig.Rig` (or an LTW rig), mm.
         chunk: how many syntheses :meth:`many` dispatches before it waits for their results.
+        cheek_puff: the two cheeks' pressures are controls too, after the muscles
+            (:func:`synthesis_function`).
+
+    ``muscle_names`` are the names of the fit's controls (the rig's muscles, then
+    :data:`~jaxface.anatomy.cheek_puff.PUFF_CONTROLS` with ``cheek_puff``); ``n_controls``
+    is their number.
 
     Calling ``model(a (M,), jaw (3,))`` returns the ``(V, 3)`` skin in mm (NumPy); ``fn`` is
     the same synthesis un-jitted (for tracing it inside other functions). :meth:`many`
@@ -78,12 +96,13 @@ class ForwardModel:
     callback, so JAX's persistent compilation cache keeps them between processes.
     """
 
-    def __init__(self, rig, *, chunk: int = 8):
+    def __init__(self, rig, *, chunk: int = 8, cheek_puff: bool = False):
         self.rig = rig
-        self.n_controls = int(rig.n_controls)
-        self.muscle_names = tuple(rig.muscle_names)
+        self.cheek_puff = bool(cheek_puff)
+        self.muscle_names = tuple(rig.muscle_names) + (PUFF_CONTROLS if cheek_puff else ())
+        self.n_controls = len(self.muscle_names)
         self.chunk = int(chunk)
-        fn = synthesis_function(rig)
+        fn = synthesis_function(rig, self.cheek_puff)
         self.fn = fn
         self._one = jax.jit(fn)
         self.calls = 0

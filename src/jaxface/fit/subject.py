@@ -48,6 +48,8 @@ class SubjectOptions:
         chunk: rig syntheses dispatched at a time (between progress updates).
         controls: sample only these controls in the reduced model (default all; the fit
             must then hold the others at 0 with ``FitOptions.controls``).
+        cheek_puff: the two cheeks' pressures (AU34) are controls of the fit, after the
+            muscles (:class:`~jaxface.fit.forward.ForwardModel`).
     """
 
     backend: str = "pbd"
@@ -57,6 +59,7 @@ class SubjectOptions:
     rig_kwargs: dict = field(default_factory=dict)
     chunk: int = 8
     controls: tuple[str, ...] | None = None
+    cheek_puff: bool = True
 
 
 @dataclass
@@ -166,7 +169,7 @@ def _compile(rig, opt: SubjectOptions, say, timings: dict) -> ForwardModel:
     """The compiled rig (one synthesis at rest); records ``compile_s``."""
     t = time.perf_counter()
     say("compiling the rig")
-    forward = ForwardModel(rig, chunk=opt.chunk)
+    forward = ForwardModel(rig, chunk=opt.chunk, cheek_puff=opt.cheek_puff)
     forward(np.zeros(forward.n_controls), np.zeros(3))
     timings["compile_s"] = time.perf_counter() - t
     return forward

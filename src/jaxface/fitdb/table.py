@@ -18,7 +18,7 @@ whatever runs, crashes and resumes produced them. Columns (units in the names):
 ``jaw_yaw_deg``,
 ``jaw_protrusion_mm``
 ``AU1`` ... ``AU12L`` ...    FACS AU intensities (``au_intensities``), one column per AU
-``act_<muscle>``             muscle activations in [0, 1] (``activations``)
+``act_<control>``            activations in [0, 1] (``activations``: the muscles and the two cheek pressures)
 ``wall_s``                   the scan's share of its subject's task (s); ``subject_wall_s``
                              the whole task
 ``worker``                   the Dask worker that ran it (``name@address``)

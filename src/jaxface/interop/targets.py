@@ -27,7 +27,8 @@ FIT_PREFIX = "fit."
 
 def rig_targets(rig, *, controls=None, aus=None, progress=None) -> list[tuple[str, np.ndarray]]:
     """One target per rig control (``muscle.<control>``: that control at activation 1, the
-    others 0, jaw at rest) and per AU (``AU12``: :func:`jaxface.facs.aus_to_controls` of that
+    others 0, jaw at rest; the controls include the fit's two cheek pressures
+    :data:`~jaxface.anatomy.cheek_puff.PUFF_CONTROLS`, one cheek puffed at 1) and per AU (``AU12``: :func:`jaxface.facs.aus_to_controls` of that
     AU at intensity 1, jaw and cheek puff included), minus the rest skin.
 
     Args:
@@ -44,16 +45,18 @@ def rig_targets(rig, *, controls=None, aus=None, progress=None) -> list[tuple[st
     """
     import jax.numpy as jnp
 
+    from ..anatomy.cheek_puff import PUFF_CONTROLS
     from ..anatomy.jaw import JawPose
     from ..anatomy.rig import synthesize
     from ..facs import AU_NAMES, aus_to_controls
 
     names = list(rig.muscle_names)
-    controls = names if controls is None else list(controls)
+    every = names + list(PUFF_CONTROLS)
+    controls = every if controls is None else list(controls)
     aus = list(AU_NAMES) if aus is None else list(aus)
-    bad = [c for c in controls if c not in names]
+    bad = [c for c in controls if c not in every]
     if bad:
-        raise RigError(f"unknown controls {bad}; the rig's controls are {names}.")
+        raise RigError(f"unknown controls {bad}; the rig's controls are {every}.")
     bad = [a for a in aus if a not in AU_NAMES]
     if bad:
         raise RigError(f"unknown AUs {bad}; known: {list(AU_NAMES)}.")
@@ -61,8 +64,12 @@ def rig_targets(rig, *, controls=None, aus=None, progress=None) -> list[tuple[st
     jobs = []
     for c in controls:
         a = np.zeros(len(names))
-        a[names.index(c)] = 1.0
-        jobs.append((MUSCLE_PREFIX + c, a, JawPose(0.0, 0.0, 0.0), 0.0))
+        puff = np.zeros(2)
+        if c in PUFF_CONTROLS:  # one cheek's pressure, as the fit's control of that name
+            puff[PUFF_CONTROLS.index(c)] = 1.0
+        else:
+            a[names.index(c)] = 1.0
+        jobs.append((MUSCLE_PREFIX + c, a, JawPose(0.0, 0.0, 0.0), puff))
     for au in aus:
         a, jaw, puff = aus_to_controls({au: 1.0}, names)
         jobs.append((au, a, jaw, puff))

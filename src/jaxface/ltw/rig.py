@@ -38,6 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..anatomy.cheek_puff import cheek_bump, puff_scale
 from ..anatomy.frame import face_frame
 from ..anatomy.geometry import smooth_normals
 from ..anatomy.interface import RigConfig, register_backend
@@ -94,7 +95,8 @@ class LTWRig(RigBase, eqx.Module):
         lid_nodes: ``(K,)`` int32 node ids driven by the eyelid controls.
         lid_fall: ``(K,)`` falloff; lid_upper: ``(K,)`` bool; lid_side: ``(K,)`` int32.
         lid_pivot, lid_axis: ``(S, 3)`` per eye; lid_angles: ``(M, S, 2)`` degrees at activation 1.
-        puff_field: ``(V, 3)`` cheek-puff field, mm (force direction and weight).
+        puff_field: ``(V, 3)`` cheek-puff field, mm (force direction and weight);
+            puff_left: ``(V,)`` bool, its left cheek's part.
         n_steps: quasi-static relaxation steps (static).
         muscle_names, muscle_aus: static tuples (the control order, shared with the PBD rig).
         info: static :class:`LTWInfo`.
@@ -110,6 +112,7 @@ class LTWRig(RigBase, eqx.Module):
     lid_axis: jax.Array
     lid_angles: jax.Array
     puff_field: jax.Array
+    puff_left: jax.Array
     puff_force: jax.Array
     n_steps: int = eqx.field(static=True)
     muscle_names: tuple = eqx.field(static=True)
@@ -352,7 +355,7 @@ def build_ltw_rig(
     jaw = JawModel.from_landmarks(frame)
 
     # cheek puff field of the PBD rig's definition (outward bump over the buccal area)
-    puff = _puff_field(mesh, frame)
+    puff, puff_left = _puff_field(mesh, frame)
 
     fdt = tissue.rest.dtype
     nS = len(piv)
@@ -378,6 +381,7 @@ def build_ltw_rig(
         lid_axis=jnp.asarray(np.stack(axs) if nS else np.zeros((0, 3)), fdt),
         lid_angles=jnp.asarray(np.stack(angs, axis=1) if nS else np.zeros((len(names), 0, 2)), fdt),
         puff_field=jnp.asarray(puff, fdt),
+        puff_left=jnp.asarray(puff_left),
         puff_force=jnp.asarray(puff_force, fdt),
         n_steps=int(n_steps),
         muscle_names=names,
@@ -386,20 +390,13 @@ def build_ltw_rig(
     )
 
 
-def _puff_field(mesh, frame) -> np.ndarray:
+def _puff_field(mesh, frame) -> tuple[np.ndarray, np.ndarray]:
     """``(V, 3)`` cheek-puff field: outward smoothed normals times the PBD rig's cheek bump
-    (Gaussian around (+-42, -58) reference mm in the face frame, radii 22 x 20 reference mm,
-    only beyond 8 mm from the midline); dimensionless weight in [0, 1] times a unit vector."""
-    x = np.asarray(mesh.vertices, float)
+    (:func:`jaxface.anatomy.cheek_puff.cheek_bump`; dimensionless weight in [0, 1] times a
+    unit vector), and ``(V,)`` bool, the left cheek's part."""
     n0 = smooth_normals(mesh, 3)
-    loc = frame.to_local(x)
-    bump = np.zeros(len(x))
-    for sgn in (1.0, -1.0):
-        cl = frame.to_local(frame.to_world([sgn * 42.0, -58.0, 0.0]))
-        r2 = ((loc[:, 0] - cl[0]) / 22.0) ** 2 + ((loc[:, 1] - cl[1]) / 20.0) ** 2
-        side_ok = (loc[:, 0] * sgn) > 8.0
-        bump = np.maximum(bump, np.where(side_ok, np.exp(-r2 * 2.0), 0.0))
-    return bump[:, None] * n0
+    bump, left = cheek_bump(np.asarray(mesh.vertices, float), frame)
+    return bump[:, None] * n0, left
 
 
 # ----------------------------------------------------------------------------- synthesis
@@ -414,7 +411,7 @@ def _solve(rig: LTWRig, activations, jaw, cheek_puff, n_steps: int):
     a = a.astype(dt)
     R, t = rig.jaw.transform(jaw)
     R, t = R.astype(dt), t.astype(dt)
-    kin, ext = _drives(rig, a, R, t, jnp.asarray(cheek_puff, dt))
+    kin, ext = _drives(rig, a, R, t, puff_scale(cheek_puff, rig.puff_left, dt))
     return relax(model, a, R, t, n_steps=n_steps, external=ext, kinematic=kin)
 
 
@@ -448,7 +445,8 @@ def synthesize_ltw(rig: LTWRig, activations, jaw=None, cheek_puff=0.0):
         rig: the :class:`LTWRig`.
         activations: ``(M,)`` in [0, 1], ordered as ``rig.muscle_names`` (same as the PBD rig).
         jaw: :class:`~jaxface.anatomy.jaw.JawPose` (degrees, mm); neutral if None.
-        cheek_puff: AU33/34 pressure in [0, 1] (0 = off).
+        cheek_puff: AU33/34 pressure in [0, 1] (0 = off), or ``[left, right]``
+            (:mod:`jaxface.anatomy.cheek_puff`).
 
     Returns:
         ``(V, 3)`` skin (epidermal node) positions, mm. jit-compiled; vmap-, grad- and
@@ -469,7 +467,7 @@ def equilibrium_residual(rig: LTWRig, activations, jaw=None, cheek_puff=0.0) -> 
     a = check_activations(rig, activations).astype(x.dtype)
     R, t = rig.jaw.transform(jaw)
     R, t = R.astype(x.dtype), t.astype(x.dtype)
-    _, ext = _drives(rig, a, R, t, jnp.asarray(cheek_puff, x.dtype))
+    _, ext = _drives(rig, a, R, t, puff_scale(cheek_puff, rig.puff_left, x.dtype))
     return float(jnp.max(residual(rig.model, x, a, R, t, external=ext)))
 
 
