@@ -178,11 +178,13 @@ def _scan_and_fit(rig, head, out: Path, say, timings) -> list[dict]:
     results = fit_expressions(subject, scans, options=FitOptions(n_points=1000))
     timings["fit_s"] = time.perf_counter() - t
     rows = []
-    names = list(subject.muscle_names)
+    names = list(subject.muscle_names)  # the rig's muscles, then the two cheek pressures
     fm = subject.face_mask
     for r in results:
         files = r.write(fits_dir, pictures=True)
-        a_true, jaw_true, x_true = truths[r.stem]
+        a_rig, jaw_true, x_true = truths[r.stem]
+        truth = dict(zip(subject.rig.muscle_names, a_rig))  # no puff in the demo's scans
+        a_true = np.array([truth.get(n, 0.0) for n in names])
         err = np.linalg.norm(np.asarray(r.fitted.vertices)[fm] - x_true[fm], axis=1)
         a_fit = np.array([r.activations[n] for n in names])
         big = [n for n, v in zip(names, a_true) if v > 0]
