@@ -47,6 +47,36 @@ def test_controls_of_aus_and_jaw(names):
     assert not a.any()
 
 
+def test_the_cheek_puff_by_side_and_as_the_fits_controls(names):
+    """AU34L / AU34R puff one cheek (``[left, right]``), a bilateral AU34 both (a number);
+    where the control names include the fit's two cheek pressures the puff is in the
+    activations, the AU table has an AU34 row per side, and the readout reads it back."""
+    from jaxface.anatomy.cheek_puff import PUFF_CONTROLS
+
+    _, _, puff = facs.aus_to_controls({"AU34L": 0.7}, names)
+    np.testing.assert_array_equal(puff, [0.7, 0.0])
+    _, _, puff = facs.aus_to_controls({"AU34L": 0.7, "AU34R": 0.7}, names)
+    assert puff == pytest.approx(0.7) and np.ndim(puff) == 0
+    _, _, puff = facs.aus_to_controls({"AU34": 0.5, "AU34R": 0.8}, names)  # clipped at 1
+    np.testing.assert_allclose(puff, [0.5, 1.0])
+    read = facs.au_intensities(np.zeros(len(names)), names, cheek_puff=np.array([0.6, 0.2]))
+    assert (read["AU34L"], read["AU34R"], read["AU34"]) == pytest.approx((0.6, 0.2, 0.4))
+    assert "AU34L" not in facs.au_intensities(np.zeros(len(names)), names, cheek_puff=0.3)
+    # the fit's controls: the muscles, then the two cheek pressures
+    fit_names = (*names, *PUFF_CONTROLS)
+    assert facs.expand_au("AU34", fit_names) == {"cheek_puff_L": 1.0, "cheek_puff_R": 1.0}
+    assert facs.expand_au("AU34R", fit_names) == {"cheek_puff_R": 1.0}
+    assert facs.expand_au("AU34", names) == {}
+    a, _, puff = facs.aus_to_controls({"AU34L": 0.7, "AU12": 0.5}, fit_names)
+    assert puff == 0.0 and list(a[-2:]) == [0.7, 0.0]
+    aus, A = facs.au_matrix(fit_names)
+    assert aus[-2:] == ["AU34L", "AU34R"] and A[-2:, -2:].tolist() == [[1, 0], [0, 1]]
+    assert "AU34L" not in facs.au_matrix(names)[0]
+    read = facs.au_intensities(a, fit_names)
+    assert read["AU34L"] == pytest.approx(0.7) and read["AU34R"] == pytest.approx(0.0)
+    assert read["AU12"] == pytest.approx(0.5)
+
+
 @pytest.mark.parametrize(
     "emotion,aus",
     [

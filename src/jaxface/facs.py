@@ -208,14 +208,17 @@ def aus_to_controls(aus: dict, muscle_names):
 
     Returns:
         ``(activations (M,) in [0, 1], JawPose, cheek_puff)``; contributions add up and are
-        clipped to [0, 1] (jaw: to its limits by the jaw model). Where ``muscle_names``
-        include the cheek pressures (:data:`~jaxface.anatomy.cheek_puff.PUFF_CONTROLS`) the
-        puff is in the activations and ``cheek_puff`` is 0.
+        clipped to [0, 1] (jaw: to its limits by the jaw model). ``cheek_puff`` is a number
+        in [0, 1] for both cheeks, or ``[left, right]`` (NumPy ``(2,)``) when a one-sided
+        ``AU34L`` / ``AU34R`` makes the cheeks differ; the rig's ``synthesize`` takes both.
+        Where ``muscle_names`` include the cheek pressures
+        (:data:`~jaxface.anatomy.cheek_puff.PUFF_CONTROLS`) the puff is in the activations
+        and ``cheek_puff`` is 0.
     """
     names = list(muscle_names)
     a = np.zeros(len(names))
     jaw = np.zeros(3)
-    puff = 0.0
+    puff = np.zeros(2)  # left, right
     for au, v in aus.items():
         base, side = _canon(au)
         v = float(v)
@@ -227,11 +230,12 @@ def aus_to_controls(aus: dict, muscle_names):
                 j[1] = -j[1]
             jaw += v * j
         if not set(PUFF_CONTROLS) <= set(names):  # else the puff is in ``a`` (expand_au)
-            puff += v * AU_PUFF.get(base, 0.0)
+            puff += v * AU_PUFF.get(base, 0.0) * np.array([side != "R", side != "L"], float)
+    puff = np.clip(puff, 0.0, 1.0)
     return (
         np.clip(a, 0.0, 1.0),
         JawPose(float(jaw[0]), float(jaw[1]), float(jaw[2])),
-        float(min(puff, 1.0)),
+        float(puff[0]) if puff[0] == puff[1] else puff,
     )
 
 
@@ -310,7 +314,8 @@ def au_intensities(
         activations: ``(M,)`` in [0, 1], ordered as ``muscle_names``.
         muscle_names: the rig's control names.
         jaw: optional :class:`~jaxface.anatomy.jaw.JawPose` (scalars).
-        cheek_puff: the fitted puff (reported as AU34).
+        cheek_puff: the puff (reported as AU34), a number or ``[left, right]`` (then also
+            ``AU34L`` / ``AU34R``).
 
     Returns:
         ``{AU: intensity}`` sorted by AU number, plus the L/R variants.
@@ -345,8 +350,12 @@ def au_dict(aus, values, jaw=None, cheek_puff: float = 0.0) -> dict[str, float]:
         out["AU30L"] = float(np.clip(y / AU_JAW["AU30"][1], 0.0, 1.0))
         out["AU30R"] = float(np.clip(-y / AU_JAW["AU30"][1], 0.0, 1.0))
         out["AU30"] = max(out["AU30L"], out["AU30R"])
-    if cheek_puff:
-        out["AU34"] = float(np.clip(cheek_puff, 0.0, 1.0))
+    p = np.clip(np.asarray(cheek_puff, np.float64), 0.0, 1.0)
+    if p.shape == (2,):  # [left, right]
+        out["AU34L"], out["AU34R"] = float(p[0]), float(p[1])
+        out["AU34"] = float(p.mean())
+    elif p.ndim == 0 and p > 0:
+        out["AU34"] = float(p)
     return sort_aus(out)
 
 

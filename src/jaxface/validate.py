@@ -45,6 +45,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike
 
 from .errors import MeshError, RigError
 from .hygiene import MAX_RIG_VERTICES
@@ -102,12 +103,13 @@ def _jaw_leaves(jaw) -> list:
     return [getattr(jaw, f, None) for f in ("pitch_deg", "yaw_deg", "protrusion_mm")]
 
 
-def check_controls(names, activations, jaw=None, cheek_puff=0.0):
+def check_controls(names, activations, jaw=None, cheek_puff: ArrayLike = 0.0):
     """Check the controls of a synthesis (see the module doc).
 
     Args:
         names: the rig's control names (for messages). activations: ``(M,)``.
-        jaw: a :class:`jaxface.anatomy.jaw.JawPose` or None. cheek_puff: scalar in [0, 1].
+        jaw: a :class:`jaxface.anatomy.jaw.JawPose` or None. cheek_puff: in [0, 1], a number
+            or ``[left, right]``.
 
     Returns:
         ``activations``, unchanged when concrete, or wrapped by :func:`equinox.error_if`
@@ -170,7 +172,7 @@ def checked_controls(fn):
     :func:`check_controls` first (see the module doc)."""
 
     @functools.wraps(fn)
-    def wrapper(rig, activations, jaw=None, cheek_puff=0.0, *args, **kwargs):
+    def wrapper(rig, activations, jaw=None, cheek_puff: ArrayLike = 0.0, *args, **kwargs):
         activations = check_controls(getattr(rig, "muscle_names", ()), activations, jaw, cheek_puff)
         return fn(rig, activations, jaw, cheek_puff, *args, **kwargs)
 

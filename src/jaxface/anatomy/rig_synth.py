@@ -12,6 +12,7 @@ from typing import Any
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jax.typing import ArrayLike
 
 from .. import pbd
 from ..errors import RigError
@@ -78,7 +79,9 @@ class Rig(RigBase, eqx.Module):
         """``(V, 3)`` rest skin, mm."""
         return self.skin.rest
 
-    def synthesize(self, activations, jaw: JawPose | None = None, cheek_puff=0.0) -> jax.Array:
+    def synthesize(
+        self, activations, jaw: JawPose | None = None, cheek_puff: ArrayLike = 0.0
+    ) -> jax.Array:
         """:func:`synthesize` of this rig: ``(V, 3)`` skin, mm (the
         :class:`~jaxface.anatomy.interface.FaceRig` method)."""
         return synthesize(self, activations, jaw, cheek_puff)
@@ -163,7 +166,7 @@ def _synth(rig: Rig, activations, jaw: JawPose | None, cheek_puff):
 
 @eqx.filter_jit
 def synthesize_state(
-    rig: Rig, activations, jaw: JawPose | None = None, cheek_puff=0.0
+    rig: Rig, activations, jaw: JawPose | None = None, cheek_puff: ArrayLike = 0.0
 ) -> SynthState:
     """:func:`synthesize`, returning the whole :class:`SynthState`."""
     return _synth(rig, activations, jaw, cheek_puff)
@@ -174,7 +177,7 @@ def equilibrium_gap(
     rig: Rig,
     activations,
     jaw: JawPose | None = None,
-    cheek_puff=0.0,
+    cheek_puff: ArrayLike = 0.0,
     *,
     sweeps: tuple[int, int] = (1000, 1000),
 ):
@@ -231,7 +234,7 @@ def equilibrium_gap(
 
 @checked_controls  # NaN / out-of-range controls refused (jaxface.validate)
 @eqx.filter_jit
-def synthesize(rig: Rig, activations, jaw: JawPose | None = None, cheek_puff=0.0):
+def synthesize(rig: Rig, activations, jaw: JawPose | None = None, cheek_puff: ArrayLike = 0.0):
     """Synthesize the face for muscle activations and a jaw pose (quasi-static).
 
     Args:

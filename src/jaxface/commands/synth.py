@@ -69,7 +69,8 @@ def synthesize_files(
 
     Args:
         rig: a PBD or LTW rig (:func:`jaxface.anatomy.build_rig`).
-        expressions: list of ``(name, activations (M,), JawPose, cheek_puff)``.
+        expressions: list of ``(name, activations (M,), JawPose, cheek_puff)`` (the puff a
+            number or ``[left, right]``).
         out: output folder (created).
         pictures: also write a PNG per expression.
         out_units: unit of the written PLY and LM3 coordinates.
@@ -121,10 +122,8 @@ def synthesize_files(
             "units": out_units,
             "activations": {n: float(v) for n, v in zip(rig.muscle_names, np.asarray(a))},
             "jaw": jd,
-            "cheek_puff": float(puff),
-            "au_intensities": au_intensities(
-                np.asarray(a), rig.muscle_names, je, cheek_puff=float(puff)
-            ),
+            "cheek_puff": np.asarray(puff, float).tolist(),  # a number, or [left, right]
+            "au_intensities": au_intensities(np.asarray(a), rig.muscle_names, je, cheek_puff=puff),
             "displacement_mm": {"max": float(disp.max()), "mean": float(disp.mean())},
             "landmark_displacement_mm": {n: [float(v) for v in d] for n, d in zip(names, lm - lm0)},
             "synthesis_s": secs,
