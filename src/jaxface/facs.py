@@ -219,6 +219,7 @@ def aus_to_controls(aus: dict, muscle_names):
     a = np.zeros(len(names))
     jaw = np.zeros(3)
     puff = np.zeros(2)  # left, right
+    puff_in_a = set(PUFF_CONTROLS) <= set(names)  # then expand_au puts the puff in ``a``
     for au, v in aus.items():
         base, side = _canon(au)
         v = float(v)
@@ -229,7 +230,7 @@ def aus_to_controls(aus: dict, muscle_names):
             if base == "AU30" and side == "R":
                 j[1] = -j[1]
             jaw += v * j
-        if not set(PUFF_CONTROLS) <= set(names):  # else the puff is in ``a`` (expand_au)
+        if not puff_in_a:
             puff += v * AU_PUFF.get(base, 0.0) * np.array([side != "R", side != "L"], float)
     puff = np.clip(puff, 0.0, 1.0)
     return (

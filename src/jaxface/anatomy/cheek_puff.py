@@ -43,16 +43,12 @@ def cheek_bump(x: np.ndarray, frame: FaceFrame) -> tuple[np.ndarray, np.ndarray]
     """
     loc = frame.to_local(np.asarray(x, np.float64))
     bump = np.zeros(len(loc))
-    left = np.zeros(len(loc), bool)
     for sgn in (1.0, -1.0):
         cl = frame.to_local(frame.to_world([sgn * _CENTRE[0], _CENTRE[1], 0.0]))
         r2 = ((loc[:, 0] - cl[0]) / _RADII[0]) ** 2 + ((loc[:, 1] - cl[1]) / _RADII[1]) ** 2
         side_ok = (loc[:, 0] * sgn) > _MIDLINE
-        w = np.where(side_ok, np.exp(-r2 * 2.0), 0.0)
-        if sgn > 0:
-            left = side_ok
-        bump = np.maximum(bump, w)
-    return bump, left
+        bump = np.maximum(bump, np.where(side_ok, np.exp(-r2 * 2.0), 0.0))
+    return bump, loc[:, 0] > _MIDLINE
 
 
 def puff_scale(cheek_puff, left: jax.Array, dtype) -> jax.Array:

@@ -28,8 +28,9 @@ FIT_PREFIX = "fit."
 def rig_targets(rig, *, controls=None, aus=None, progress=None) -> list[tuple[str, np.ndarray]]:
     """One target per rig control (``muscle.<control>``: that control at activation 1, the
     others 0, jaw at rest; the controls include the fit's two cheek pressures
-    :data:`~jaxface.anatomy.cheek_puff.PUFF_CONTROLS`, one cheek puffed at 1) and per AU (``AU12``: :func:`jaxface.facs.aus_to_controls` of that
-    AU at intensity 1, jaw and cheek puff included), minus the rest skin.
+    :data:`~jaxface.anatomy.cheek_puff.PUFF_CONTROLS`, one cheek puffed at 1) and per AU
+    (``AU12``: :func:`jaxface.facs.aus_to_controls` of that AU at intensity 1, jaw and cheek
+    puff included), minus the rest skin.
 
     Args:
         rig: a rig (:func:`jaxface.anatomy.rig.build_rig`).
