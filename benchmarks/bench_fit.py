@@ -602,6 +602,11 @@ def main() -> None:
         "--sweeps (default: build_rig's 32/8)",
     )
     ap.add_argument(
+        "--muscle-map",
+        default=None,
+        help="muscle-map JSON for the subjects' rigs (default: the packaged map)",
+    )
+    ap.add_argument(
         "--no-cheek-puff",
         action="store_true",
         help="fit the muscles and the jaw only (SubjectOptions.cheek_puff=False)",
@@ -652,6 +657,8 @@ def main() -> None:
         except RigError as e:
             ap.error(str(e))
         rig_kwargs = dict(muscle_iterations=m, skin_iterations=k, skin_chebyshev_rho=rho)
+    if args.muscle_map:
+        rig_kwargs["muscle_map"] = args.muscle_map
     subject_options = SubjectOptions(rig_kwargs=rig_kwargs, cheek_puff=not args.no_cheek_puff)
     report = {
         "machine": _machine(),

@@ -674,6 +674,30 @@ def test_footprint_clusters_stay_within_their_radius_and_the_operator_matches_th
             footprint_operator(mesh, sig, cluster_mm=bad)
 
 
+def test_footprint_neighbourhoods_equal_dijkstra_on_the_whole_graph():
+    """The footprint's geodesic neighbourhoods run Dijkstra on the subgraph near each chunk of
+    sources; against Dijkstra on the whole edge graph (scipy, undirected) the pairs within
+    the limit and the footprint's weights are the same to the last digit."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import dijkstra
+
+    from jaxface.anatomy.skin import footprint_matrix
+    from jaxface.anatomy.skin_footprint import _geodesic_graph, _within
+
+    mesh, _ = _grid_mesh(n=15, jitter=1.0)  # 10 mm grid
+    X = mesh.vertices
+    D = dijkstra(_geodesic_graph(mesh), directed=False)
+    for limit in (6.0, 12.5, 31.0):
+        near = _within(_geodesic_graph(mesh), X, limit, chunk=17)
+        np.testing.assert_array_equal(near.toarray(), D <= limit)
+    sig = np.where(X[:, 0] > 70.0, 14.0, 6.0)
+    ref = np.where(D <= 2.5 * sig[:, None], np.exp(-0.5 * (D / sig[:, None]) ** 2), 0.0)
+    ref /= ref.sum(axis=1, keepdims=True)
+    F = footprint_matrix(mesh, sig, chunk=23)
+    assert sp.issparse(F)
+    np.testing.assert_allclose(F.toarray(), ref, rtol=1e-15, atol=0)
+
+
 def test_clustered_footprint_synthesises_what_the_exact_one_does(rig):
     """The rig's default clustered footprint against the exact one, through the JAX path:
     the six emotions and AU12 agree within 0.15 mm on the default head."""
