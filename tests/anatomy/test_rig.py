@@ -675,7 +675,7 @@ def test_footprint_clusters_stay_within_their_radius_and_the_operator_matches_th
 
 
 def test_footprint_neighbourhoods_equal_dijkstra_on_the_whole_graph():
-    """The footprint's geodesic neighbourhoods run Dijkstra on the subgraph near each chunk of
+    """The clusters' geodesic neighbourhoods run Dijkstra on the subgraph near each chunk of
     sources; against Dijkstra on the whole edge graph (scipy, undirected) the pairs within
     the limit and the footprint's weights are the same to the last digit."""
     import scipy.sparse as sp

@@ -128,17 +128,16 @@ def footprint_matrix(skin: TriMesh, sigma, *, chunk: int = 512) -> sp.csr_matrix
     if not np.all(np.isfinite(sig)) or sig.min() <= 0:
         raise RigError("the tissue footprint's sigma must be positive and finite (mm).")
     g = _geodesic_graph(skin)
-    tree = cKDTree(skin.vertices)
     rows, cols, vals = [], [], []
     for s in range(0, V, chunk):
         ids = np.arange(s, min(V, s + chunk))
         sr = sig[ids]
-        r, c, d = _geodesic_near(g, tree, ids, 2.5 * float(sr.max()))
-        keep = d <= 2.5 * sr[r]
-        r, c, d = r[keep], c[keep], d[keep]
+        D = dijkstra(g, directed=False, indices=ids, limit=2.5 * float(sr.max()))
+        keep = np.isfinite(D) & (D <= 2.5 * sr[:, None])
+        r, c = np.nonzero(keep)
         rows.append(ids[r])
         cols.append(c)
-        vals.append(np.exp(-0.5 * (d / sr[r]) ** 2))
+        vals.append(np.exp(-0.5 * (D[r, c] / sr[r]) ** 2))
     M = sp.csr_matrix(
         (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(V, V)
     )
