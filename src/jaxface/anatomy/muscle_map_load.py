@@ -115,24 +115,9 @@ def _check_point(pt, where: str, path) -> None:
 
 #: The expressive-range variant of the default map (issue 44; opt-in, see
 #: ``docs/design/anatomy.md``): the orbicularis oris purses and protrudes the lips and drags
-#: the modiolus, and the frontalis inserts between the orbicularis oculi fibres, 8 mm below the
-#: brow line, and contracts further. ``load_muscle_map(edits=RANGE_EDITS)``.
+#: the modiolus. ``load_muscle_map(edits=RANGE_EDITS)``.
 RANGE_EDITS: dict[str, dict] = {
     "orbicularis_oris": {"protrusion": 1.2, "modiolus_drag": 1.0, "max_contraction": 0.65},
-    "frontalis_medial": {
-        "max_contraction": 0.6,
-        "insertion": {
-            "at": {"Inner left eyebrow": 0.7, "Middle left eyebrow": 0.3},
-            "offset": [0, -8, 0],
-        },
-    },
-    "frontalis_lateral": {
-        "max_contraction": 0.6,
-        "insertion": {
-            "at": {"Middle left eyebrow": 0.3, "Outer left eyebrow": 0.7},
-            "offset": [0, -8, 0],
-        },
-    },
 }
 
 
