@@ -1,5 +1,5 @@
 """The anatomy's expressive range (issue 44), pinned qualitatively on the default head: the
-frontalis lifts the brows by more than 10 mm (the default map), and with the range variant of
+frontalis lifts every part of the brows by more than 10 mm (the default map), and with the range variant of
 the muscle map (:data:`jaxface.anatomy.muscle_map.RANGE_EDITS`, opt-in) pursed lips move the
 mouth corners toward the mid-line and forward, the cheeks hollow as the lips protrude, and the
 protrusion is smooth at rest. Units mm."""
@@ -77,8 +77,8 @@ def test_the_cheeks_hollow_when_the_lips_protrude(range_rig, head, rest, pucker)
 
 
 def test_the_frontalis_lifts_the_brows_more_than_10_mm(default_rig, head):
-    """AU1+2 at 1 on the default rig: the inner brows rise at least 10 mm and every brow
-    landmark at least 7 mm (real brow raises reach 13-15 mm)."""
+    """AU1+2 at 1 on the default rig: every brow landmark rises at least 10 mm (real brow
+    raises reach 13-15 mm), and the inner brows at least as far as the middle and outer."""
     rest = np.asarray(synthesize(default_rig, default_rig.activations({})))
     d = _aus(default_rig, {"AU1": 1.0, "AU2": 1.0}) - rest
     for side in ("left", "right"):
@@ -86,8 +86,8 @@ def test_the_frontalis_lifts_the_brows_more_than_10_mm(default_rig, head):
             part: d[_vertex(rest, head, f"{part} {side} eyebrow"), 1]
             for part in ("Inner", "Middle", "Outer")
         }
-        assert rise["Inner"] >= 10.0, rise
-        assert min(rise.values()) >= 7.0, rise
+        assert min(rise.values()) >= 10.0, rise
+        assert rise["Inner"] >= max(rise["Middle"], rise["Outer"]), rise
 
 
 def test_protrusion_is_smooth_at_rest_and_moves_the_ring_forward(range_rig):
