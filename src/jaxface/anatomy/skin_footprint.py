@@ -104,7 +104,7 @@ def _geodesic_near(g: sp.csr_matrix, tree, ids: np.ndarray, limit: float):
 def _within(g: sp.csr_matrix, points: np.ndarray, limit: float, chunk: int = 256):
     """``(V, V)`` pattern of the vertex pairs at most ``limit`` (mm) apart along the edge
     graph ``g`` of ``points`` ``(V, 3)`` mm (:func:`_geodesic_near`)."""
-    V = g.shape[0]
+    V = len(points)
     tree = cKDTree(points)
     rows, cols = [], []
     for s in range(0, V, chunk):
