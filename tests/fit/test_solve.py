@@ -768,24 +768,20 @@ def test_gradient_correction_gives_the_exact_rigs_gradient(round_trip):
 
 
 def test_bound_flip_restart_leaves_a_minimum_with_a_saturated_control(default_rig):
-    """A fit trapped with a control at its upper bound, and the restart that frees it.
+    """A fit trapped with controls at their upper bound, and the restart that frees them.
 
     The default head and rig; four true controls (buccinator R at its bound, 1) and the jaw,
-    fitted from a start far from the truth, every activation at 0.8. The fit converges
-    (``successful``) with levator anguli oris R (truly 0) at 1, at a cost of 2.07e-3 mm^2 and an
-    activation error of 1.0: a trap that converges, so only ``restart_when="saturated"``
-    restarts it. Fitted again from there with that control back near 0 it reaches 4.5e-7 mm^2,
-    every activation within 0.003 of the truth.
-    Which controls trap depends on the model and the solver's numerical path, so the test
-    asserts the restart's contract, not the names. Measured on earlier paths: before the
-    modiolus moved to the mouth corner, the start at 0.9 trapped buccinator R and depressor
-    labii inferioris L without converging (3.38e-3 mm^2, restarted by the default trigger to
-    8.85e-4); now the start at 0.9 runs unconverged with only the true buccinator R at 1, and
-    the default trigger's restart still wins (1.05e-5 to 1.44e-6 mm^2); starts at 0.95 and 1.0
-    converge into traps too. With separate forward and reverse passes in the gradient
-    correction, levator anguli oris R, depressor labii inferioris L and mentalis R trapped
-    (1.22e-2 mm^2, restarted to 2.07e-3); with the inner steps' QR solve, levator anguli oris L
-    alone (5.5e-3 mm^2, restarted to 1.2e-5)."""
+    fitted from a start far from the truth, every activation at 0.9. The fit converges into a
+    trap with levator anguli oris L, depressor labii inferioris L and levator labii superioris R
+    (all truly 0) at 1 (1.64e-2 mm^2), so only ``restart_when="saturated"`` restarts it; fitted
+    again from there with those controls back near 0 it reaches 7.4e-3 mm^2 and a scan
+    distance under 0.05 mm, in a neighbouring minimum (levator labii superioris L's pull taken
+    by its alaeque nasi neighbour). Which controls trap depends on the model and the solver's
+    numerical path, so the test asserts the restart's contract, not the names. Measured on
+    earlier paths: with the frontalis inserted 3 mm below the brow line (before 2026-12-07) the
+    start at 0.8 trapped levator anguli oris R alone and the restart reached every activation
+    within 0.003; with the frontalis in the brow the start at 0.8 ends with only the true
+    buccinator R at 1 and the start at 1.0 fits every activation within 0.03, untrapped."""
     from jaxface.anatomy.jaw import JawPose
     from jaxface.anatomy.rig import Rig, synthesize
     from jaxface.fit.pipeline import SubjectOptions, fit_expressions, subject_from_rig
@@ -816,30 +812,32 @@ def test_bound_flip_restart_leaves_a_minimum_with_a_saturated_control(default_ri
         subject,
         [scan_skin(x, bound)],
         options=FitOptions(
-            restart_iterations=4, init_activation=0.8, motion_fraction=0.0, restart_when="saturated"
+            restart_iterations=4, init_activation=0.9, motion_fraction=0.0, restart_when="saturated"
         ),
     )
     r = res.fit.restart
-    # the restart ran, won by far (measured 2e-4x the parent's cost) and is what is reported
-    assert r and r["kept"] and r["cost_mm2"] < 0.5 * r["parent_cost_mm2"], r
+    # the restart ran, won (measured 0.45x the parent's cost) and is what is reported
+    assert r and r["kept"] and r["cost_mm2"] < 0.6 * r["parent_cost_mm2"], r
     assert res.solver_dict()["restart"]["kept"]
     # the trap: controls that are truly 0 were held at 1; the kept run has left it
     trapped = [n for n in r["controls"] if truth.get(n, 0.0) == 0.0]
     assert trapped, r
     for n in trapped:
-        assert res.activations[n] < 0.1, (n, res.activations[n])
+        assert res.activations[n] < 0.25, (n, res.activations[n])
     assert res.metrics.scan_to_fit["all"].mean < 0.05
-    worst = max(abs(v - truth.get(n, 0.0)) for n, v in res.activations.items())
-    assert worst < 0.05, worst
     jaw = res.solver_dict()["jaw_as_fitted"]
     assert abs(jaw["pitch_deg"] - 6.0) < 0.5 and abs(jaw["protrusion_mm"] - 1.0) < 0.3, jaw
-    # the left corner's muscles trade one for another (the docstring), but something pulls
-    # that corner as risorius L did; the rest end near the truth
-    corner = {"risorius_L", "zygomaticus_major_L", "depressor_anguli_oris_L"}
-    assert sum(res.activations[n] for n in corner) > 0.2, {n: res.activations[n] for n in corner}
-    for n in subject.muscle_names:
-        if n not in corner:
-            assert abs(res.activations[n] - truth.get(n, 0.0)) < 0.1, (n, res.activations[n])
+    # the true buccinator R at its bound and the brow stay; the left upper lip is lifted by
+    # levator labii superioris L or its alaeque nasi neighbour (the neighbouring minimum)
+    assert (
+        res.activations["buccinator_R"] > 0.9
+        and abs(res.activations["frontalis_medial_L"] - 0.6) < 0.1
+    )
+    lip = (
+        res.activations["levator_labii_superioris_L"]
+        + res.activations["levator_labii_superioris_alaeque_nasi_L"]
+    )
+    assert lip > 0.25, lip
 
 
 def test_round_trip_recovers_a_one_sided_cheek_puff(default_rig):
