@@ -47,13 +47,11 @@ def test_detects_the_bosphorus_landmarks_of_a_scan_without_landmarks(scan_and_de
     assert len(err) >= 18
     assert set(det.omitted) >= {"Left ear lobe", "Right ear lobe"}  # frontal scan: no ears
     assert all(isinstance(r, str) and r for r in det.omitted.values())
-    # the default head's nose peaks sit on the alae, the ICT truth's ~10 mm more lateral (a
-    # definition difference, see docs/landmarks.md): bounded apart
-    peaks = {n: e for n, e in err.items() if "nose peak" in n}
-    rest = {n: e for n, e in err.items() if n not in peaks}
-    assert np.mean(list(rest.values())) < 3.0, err
-    assert max(rest.values()) < 5.0, err
-    assert max(peaks.values(), default=0.0) < 14.0, err
+    # every label, the nose peaks too: the calibrated definitions (jaxface.detect.definitions)
+    # put them at the alar-facial groove where the data's convention does (the head's own
+    # landmarks, on the alae's outer edge, were 11.6 mm off here)
+    assert np.mean(list(err.values())) < 2.0, err
+    assert max(err.values()) < 4.0, err
     assert all(0.0 <= c <= 1.0 for c in det.confidence.values())
     check_side(det.landmarks)  # jaxface frame: no mirror problem
     assert det.side_problem is None
@@ -70,9 +68,23 @@ def test_a_rotated_scan_gives_the_rotated_landmarks(scan_and_detection):
     moved = {n: np.linalg.norm(det_r.landmarks[n] - R @ det.landmarks[n]) for n in det.landmarks}
     assert max(moved.values()) < 1.0, moved
     err = _errors(det_r, scan.landmarks, R)
-    rest = [e for n, e in err.items() if "nose peak" not in n]  # see the upright test
-    assert np.mean(rest) < 3.0, err
+    assert np.mean(list(err.values())) < 2.0, err
     assert np.allclose(det_r.pose.up, R[:, 1], atol=0.1)
+
+
+def test_the_slits_are_found_through_scanner_noise(scan_and_detection):
+    """0.3 mm of depth noise (a real range scanner's, about; the shared bs901 has 0.1 mm)
+    makes single vertices look concave. The valleys are measured on the scan smoothed over
+    1.5 mm (:data:`jaxface.detect.slits.SMOOTH_MM`), so the eye and mouth corners stay where
+    the clean scan's are; measured on the raw vertices, the mouth's slit ran off into noise
+    and its corners were placed 13-16 mm off."""
+    scan, v, f, _ = scan_and_detection
+    noisy = np.array(v, float)
+    noisy[:, 2] += np.random.default_rng(0).normal(0.0, 0.3, len(noisy))
+    err = _errors(detect_landmarks((noisy, f)), scan.landmarks)
+    eyes = [e for n, e in err.items() if "eye corner" in n]
+    assert len(eyes) == 4 and np.mean(eyes) < 2.5, err
+    assert err["Left mouth corner"] < 6.0 and err["Right mouth corner"] < 6.0, err
 
 
 @pytest.mark.data
@@ -116,8 +128,7 @@ def test_whole_ict_head_with_the_eyes_closed(shared):
     eyes = [n for n in err if "eye corner" in n]
     assert len(eyes) == 4
     assert np.mean([err[n] for n in eyes]) < 3.0, err
-    rest = [e for n, e in err.items() if "nose peak" not in n]  # see the upright test
-    assert np.mean(rest) < 3.5, err
+    assert np.mean(list(err.values())) < 3.5, err
 
 
 def test_the_template_opens_its_jaw_as_far_as_the_scan():
@@ -159,9 +170,12 @@ def test_the_template_opens_its_jaw_as_far_as_the_scan():
 
 def test_the_ict_face_with_its_jaw_open(shared):
     """ICT-FaceKit's scan-based ``jawOpen`` (the chin 42 mm down; not our hinge): the
-    template opens its jaw, which keeps the pose on the upper face: the eye corners and the
-    upper lip stay within 3 mm and the mouth corners within 7 mm (the closed template,
-    dragged down by the open mouth, left the mouth corners 12 mm off)."""
+    template opens its jaw, which keeps the pose on the upper face: the eye corners stay
+    within 4 mm, the upper lip within 3 mm and the mouth corners within 7 mm (the closed
+    template, dragged down by the open mouth, left the mouth corners 12 mm off). The inner eye
+    corners are at 3.5 mm: the valleys measured on the scan smoothed over 1.5 mm (for noisy
+    range scans) reach 2 mm further into the lacrimal hollow of this clean mesh (1.4 mm on
+    the raw vertices)."""
     d = np.load(shared("data", "ict", "ict_face.npz"))
     ids = json.loads(shared("data", "bosphorus_style", "truth.json").read_text())[
         "landmark_vertex_ids_ict"
@@ -176,7 +190,7 @@ def test_the_ict_face_with_its_jaw_open(shared):
         n: float(np.linalg.norm(det.landmarks[n] - v[ids[n]])) for n in det.landmarks if n in ids
     }
     eyes = [err[n] for n in err if "eye corner" in n]
-    assert len(eyes) == 4 and max(eyes) < 3.0, err
+    assert len(eyes) == 4 and max(eyes) < 4.0, err
     assert err["Upper lip outer middle"] < 3.0, err
     assert err["Left mouth corner"] < 7.0 and err["Right mouth corner"] < 7.0, err
 

@@ -3,10 +3,11 @@
 Units mm; the landmarks are returned in the scan's own frame, whatever it is. Pipeline
 (:func:`detect_landmarks`): coarse pose (:mod:`jaxface.detect.pose`), the template's jaw
 opened as far as the scan's (:func:`jaxface.detect.transfer.choose_jaw_opening`),
-registration of the default head's face and landmark transfer
-(:mod:`jaxface.detect.transfer`), eye and
-mouth refinement on the scan's relief (:mod:`jaxface.detect.slits`), surface snap, nose tip,
-visibility and confidence (:mod:`jaxface.detect.refine`), then the side check:
+registration of the default head's face and transfer of its landmarks at their calibrated
+definitions (:mod:`jaxface.detect.transfer`, :mod:`jaxface.detect.definitions`), eye and
+mouth refinement on the scan's relief (:mod:`jaxface.detect.slits`), the nose tip and brows
+at their relief extrema (:mod:`jaxface.detect.features`), surface snap, visibility and
+confidence (:mod:`jaxface.detect.refine`), then the side check:
 the labels follow the detected anatomy (the subject's left is ``up x forward``), so when they
 fail :func:`jaxface.landmarks.check_side` in the scan's frame the frame is not jaxface's
 (+y up, face along +z, left at +x): it is mirrored or the face looks along -z, and a
@@ -26,10 +27,11 @@ from ..errors import LandmarkError
 from ..fit.metrics import SurfaceIndex, mesh_arrays
 from ..fit.register import Registration
 from ..landmarks import BOSPHORUS_LABELS, FACE_LABELS, Landmarks, check_side
-from .pose import PoseEstimate, estimate_pose
+from .features import feature_extrema
+from .pose import PoseEstimate
 from .refine import Placement, place_landmarks
 from .slits import refine_slits, scan_rim_vertices
-from .transfer import choose_jaw_opening, face_template, transfer_landmarks
+from .transfer import FaceTemplate, register_face
 
 __all__ = ["JAW_FOLLOWERS", "Detection", "MirroredScanWarning", "detect_landmarks", "scan_arrays"]
 
@@ -96,7 +98,9 @@ def scan_arrays(scan) -> tuple[np.ndarray, np.ndarray]:
     return mesh_arrays(scan)
 
 
-def detect_landmarks(scan, *, warn: bool = True, refine: bool = True) -> Detection:
+def detect_landmarks(
+    scan, *, warn: bool = True, refine: bool = True, template: FaceTemplate | None = None
+) -> Detection:
     """Find the Bosphorus landmarks on a scan that has none (see the module doc).
 
     Arguments:
@@ -104,7 +108,11 @@ def detect_landmarks(scan, *, warn: bool = True, refine: bool = True) -> Detecti
             or ``(V, F)``; mm; any frame.
         warn: issue :class:`MirroredScanWarning` when the frame looks mirrored.
         refine: refine the eye and mouth landmarks on the scan's relief
-            (:mod:`jaxface.detect.slits`); ``False`` keeps the transferred ones.
+            (:mod:`jaxface.detect.slits`), and the nose tip and brows at their relief extrema
+            (:mod:`jaxface.detect.features`); ``False`` keeps the transferred ones.
+        template: the registered face and the points it carries (default
+            :func:`jaxface.detect.transfer.face_template`: the default head with the packaged
+            landmark definitions).
 
     Returns:
         :class:`Detection`.
@@ -116,12 +124,7 @@ def detect_landmarks(scan, *, warn: bool = True, refine: bool = True) -> Detecti
     t0 = time.perf_counter()
     v, f = scan_arrays(scan)
     index = SurfaceIndex(v, f)
-    tpl = face_template()
-    pose = estimate_pose(index, np.asarray(tpl.mesh.vertices), tpl.normals, tpl.nose_tip)
-    opening, pose, _ = choose_jaw_opening(index, pose, tpl)
-    if opening:
-        tpl = tpl.opened(opening)
-    reg = transfer_landmarks(index, pose.transform, tpl)
+    pose, opening, tpl, reg = register_face(index, template)
     names = list(FACE_LABELS)
     guesses = reg.landmarks.array(names)
     findings: dict[str, str] = {}
@@ -134,16 +137,14 @@ def detect_landmarks(scan, *, warn: bool = True, refine: bool = True) -> Detecti
             scan_rim_vertices(index),
             findings,
         )
+        T = pose.transform
+        for n, p in feature_extrema(
+            index, dict(zip(names, guesses)), pose.left, pose.up, pose.forward
+        ).items():
+            if n in tpl.offsets:  # a feature without an offset keeps its transferred point
+                better[n] = p + T.scale * (T.rotation @ tpl.offsets[n])
         guesses = np.stack([better[n] if n in better else g for n, g in zip(names, guesses)])
-    placed = place_landmarks(
-        index,
-        names,
-        guesses,
-        reg.vertices,
-        reg.residuals,
-        reg.has_data,
-        forward=pose.forward,
-    )
+    placed = place_landmarks(index, names, guesses, reg.vertices, reg.residuals, reg.has_data)
     if "open_mouth" in findings:
         # the template's lower lip and chin stayed up with the closed mouth it was registered
         # from (on the interior of the mouth): left out rather than placed 20 mm off
@@ -159,7 +160,6 @@ def detect_landmarks(scan, *, warn: bool = True, refine: bool = True) -> Detecti
             np.zeros((0, 3)),
             np.zeros(0),
             np.zeros(0, bool),
-            forward=pose.forward,
         )
     )
     order = [n for n in BOSPHORUS_LABELS if n in placed]

@@ -1,9 +1,6 @@
-"""Local refinement, visibility and confidence of transferred landmarks (mm, scan frame).
+"""Surface snap, visibility and confidence of landmarks (mm, scan frame).
 
 * **Surface snap.** Every landmark is moved to its closest point on the scan surface.
-* **Nose tip.** Re-detected as the most protruding scan point along the face's forward
-  direction within :data:`TIP_RADIUS_MM` of the transferred tip (the protrusion extremum is
-  what the Bosphorus "nose tip" marks; the registration alone can slide tangentially).
 * **Visibility.** A label is left out, with a reason, when the scan has no surface under it:
   its closest scan point is on a hole rim or the scan border (and more than
   :data:`BOUNDARY_GAP_MM` away), farther than
@@ -23,9 +20,8 @@ from scipy.spatial import KDTree
 
 from ..fit.metrics import SurfaceIndex
 
-__all__ = ["Placement", "place_landmarks", "refine_nose_tip"]
+__all__ = ["Placement", "place_landmarks"]
 
-TIP_RADIUS_MM = 8.0
 MAX_GAP_MM = 3.0
 CONF_RADIUS_MM = 6.0
 BOUNDARY_GAP_MM = 1.5
@@ -47,22 +43,6 @@ class Placement:
     reason: str | None
 
 
-def refine_nose_tip(index: SurfaceIndex, tip: np.ndarray, forward: np.ndarray) -> np.ndarray:
-    """The scan vertex of largest ``p . forward`` within :data:`TIP_RADIUS_MM` of ``tip``
-    (``(3,)`` mm); ``tip`` itself when no scan vertex is that close."""
-    v = index.vertices
-    ids = KDTree(v).query_ball_point(tip, TIP_RADIUS_MM)
-    if not ids:
-        return np.asarray(tip, float)
-    ids = np.asarray(ids)
-    used = np.zeros(len(v), bool)
-    used[np.unique(index.triangles[index.active_ids])] = True
-    ids = ids[used[ids]]
-    if ids.size == 0:
-        return np.asarray(tip, float)
-    return v[ids[np.argmax(v[ids] @ forward)]].copy()
-
-
 def place_landmarks(
     index: SurfaceIndex,
     names: list[str],
@@ -70,22 +50,15 @@ def place_landmarks(
     reg_vertices: np.ndarray,
     reg_residuals: np.ndarray,
     reg_has_data: np.ndarray,
-    *,
-    forward: np.ndarray,
 ) -> dict[str, Placement]:
-    """Snap, refine and score the landmark ``guesses`` ``(N, 3)`` mm (labels ``names``).
+    """Snap and score the landmark ``guesses`` ``(N, 3)`` mm (labels ``names``).
 
     Arguments:
         reg_vertices, reg_residuals, reg_has_data: the registered template's ``(V, 3)``
             vertices, ``(V,)`` residuals (mm) and ``(V,)`` data flags (for confidence; an
             empty array means no registration covers these labels, e.g. the ear lobes).
-        forward: ``(3,)`` unit direction the face looks (scan frame).
     """
     guesses = np.asarray(guesses, float).reshape(-1, 3)
-    guesses = guesses.copy()
-    if "Nose tip" in names:
-        k = names.index("Nose tip")
-        guesses[k] = refine_nose_tip(index, guesses[k], forward)
     cp = index.query(guesses)
     tree = KDTree(reg_vertices) if len(reg_vertices) else None
     out: dict[str, Placement] = {}

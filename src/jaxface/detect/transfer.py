@@ -10,12 +10,15 @@ template's own landmarks moved by the coarse pose: the TPS reduces to that simil
 transform, and the landmark weights are zero, so only the surface decides the non-rigid
 part. The smoothing schedule stops at 4 mm: finer detail is the job of the local refinement
 (:mod:`jaxface.detect.refine`).
+
+The points carried along are the head's landmarks, with the labels on a smooth surface at
+their calibrated definitions (:mod:`jaxface.detect.definitions`).
 """
 
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -28,13 +31,16 @@ from ..head import generic_head
 from ..io.preprocess import RigidTransform
 from ..landmarks import FACE_LABELS, Landmarks
 from ..mesh import TriMesh
-from .pose import PoseEstimate, pose_score, refine_pose
+from .definitions import LandmarkDefinitions, load_definitions
+from .features import FEATURE_LABELS, feature_extrema
+from .pose import PoseEstimate, estimate_pose, pose_score, refine_pose
 
 __all__ = [
     "FaceTemplate",
     "face_template",
     "transfer_landmarks",
     "choose_jaw_opening",
+    "register_face",
     "TRANSFER_OPTIONS",
     "JAW_OPENINGS_DEG",
 ]
@@ -62,15 +68,20 @@ class FaceTemplate:
 
     Attributes:
         mesh: the face region as a :class:`TriMesh` (``V`` vertices).
-        landmarks: the 22 Bosphorus face landmarks on it.
+        landmarks: the 22 Bosphorus face landmarks on it: the head's own, with the labels of
+            the definitions (:mod:`jaxface.detect.definitions`) at their definitions, moved
+            onto the face's surface.
         ear_lobes: the two ear-lobe landmarks of the whole head (outside ``mesh``).
         normals: ``(V, 3)`` unit vertex normals.
-        nose_tip: ``(3,)`` mm.
+        nose_tip: ``(3,)`` mm, the head's most anterior nose point (the coarse pose puts it on
+            the scan's most protruding point).
         regions: ``(V,)`` bool masks named as :attr:`jaxface.head.Head.regions` (restricted
             to the face).
         jaw_weight: ``(V,)`` in [0, 1], how far each vertex follows the mandible
             (:func:`jaxface.anatomy.rig_build.jaw_follow_weights` with the lower lip on the
             mandible, halved toward the mouth corners, which move about half as far).
+        offsets: label -> ``(3,)`` mm, head frame: from a feature label's relief extremum to
+            the label (:attr:`LandmarkDefinitions.offsets_mm`; empty without definitions).
         landmark_jaw_weight: ``(22,)`` the same at the landmarks (their nearest vertex).
         jaw: the head's :class:`~jaxface.anatomy.jaw.JawModel` (opening up to 30 degrees).
     """
@@ -84,6 +95,7 @@ class FaceTemplate:
     jaw_weight: np.ndarray
     landmark_jaw_weight: np.ndarray
     jaw: JawModel
+    offsets: dict = field(default_factory=dict)
 
     def opened(self, degrees: float) -> FaceTemplate:
         """This template with the jaw opened by ``degrees`` about the hinge: each vertex (and
@@ -111,11 +123,29 @@ class FaceTemplate:
 
 @functools.lru_cache(maxsize=1)
 def face_template() -> FaceTemplate:
-    """The cached :class:`FaceTemplate` of the default head."""
+    """The cached :class:`FaceTemplate` of the default head, with the packaged landmark
+    definitions (:func:`jaxface.detect.definitions.load_definitions`)."""
+    return build_face_template(load_definitions())
+
+
+def build_face_template(definitions: LandmarkDefinitions | None = None) -> FaceTemplate:
+    """The :class:`FaceTemplate` of the default head.
+
+    ``definitions`` (head frame, mm) replace the head's own landmarks at their labels, and
+    give the feature labels' offsets from their relief extrema. ``None``: the head's own
+    landmarks, and as offsets the head's own, from each feature's extremum on the head itself
+    to its landmark (the nose tip: about zero, it is the most anterior point)."""
     head = generic_head()
     tri = np.asarray(head.mesh.triangles)
     sub, ids = head.mesh.submesh(head.face_mask[tri].all(axis=1))
     lm = head.landmarks.subset(FACE_LABELS)
+    if definitions is not None and definitions.points:
+        names = [n for n in FACE_LABELS if n in definitions.points]
+        on = SurfaceIndex(np.asarray(sub.vertices), np.asarray(sub.triangles)).query(
+            np.stack([definitions.points[n] for n in names])
+        )
+        pos = {n: p for n, p in zip(names, on.points)}
+        lm = lm.with_positions(np.stack([pos.get(n, lm[n]) for n in lm.names]))
     ears = head.landmarks.subset(("Left ear lobe", "Right ear lobe"))
     regions = {k: np.asarray(m, bool)[ids] for k, m in head.regions.items()}
     frame = face_frame(head.landmarks)
@@ -134,11 +164,12 @@ def face_template() -> FaceTemplate:
         landmarks=lm,
         ear_lobes=ears,
         normals=np.asarray(sub.vertex_normals),
-        nose_tip=np.array(lm["Nose tip"]),
+        nose_tip=np.array(head.landmarks["Nose tip"]),
         regions=regions,
         jaw_weight=w,
         landmark_jaw_weight=w[near],
         jaw=JawModel.from_landmarks(head.landmarks, pitch_limits=(-4.0, 30.0)),
+        offsets=_own_offsets(sub, lm) if definitions is None else dict(definitions.offsets_mm),
     )
 
 
@@ -206,3 +237,37 @@ def transfer_landmarks(
         options=options,
         scan_index=index,
     )
+
+
+def _own_offsets(mesh: TriMesh, lm: Landmarks) -> dict[str, np.ndarray]:
+    """label -> the head's own offset from the feature's extremum to its landmark (mm)."""
+    index = SurfaceIndex(np.asarray(mesh.vertices), np.asarray(mesh.triangles))
+    axes = np.eye(3)
+    found = feature_extrema(index, {n: lm[n] for n in FEATURE_LABELS}, axes[0], axes[1], axes[2])
+    return {n: np.asarray(lm[n]) - e for n, e in found.items()}
+
+
+def register_face(
+    index: SurfaceIndex, template: FaceTemplate | None = None
+) -> tuple[PoseEstimate, float, FaceTemplate, Registration]:
+    """The detector's registration of the default head's face onto a scan: coarse pose
+    (:func:`jaxface.detect.pose.estimate_pose`), jaw opening (:func:`choose_jaw_opening`) and
+    transfer (:func:`transfer_landmarks`).
+
+    Arguments:
+        index: the scan's surface (mm, any frame).
+        template: default :func:`face_template`.
+
+    Returns:
+        ``(pose, jaw opening in degrees, the template as opened, registration)``; the
+        registration's vertex ``i`` is template vertex ``i`` (scan frame, mm).
+
+    Raises:
+        NoFaceFoundError: the mesh does not look like a face.
+    """
+    tpl = template or face_template()
+    pose = estimate_pose(index, np.asarray(tpl.mesh.vertices), tpl.normals, tpl.nose_tip)
+    opening, pose, _ = choose_jaw_opening(index, pose, tpl)
+    if opening:
+        tpl = tpl.opened(opening)
+    return pose, float(opening), tpl, transfer_landmarks(index, pose.transform, tpl)

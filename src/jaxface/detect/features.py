@@ -1,0 +1,131 @@
+"""Relief features that fix a landmark where the registration slides: the nose's and the
+brows' protrusion extrema (mm, scan frame).
+
+The registration that carries the landmarks matches surfaces, not positions along them: on
+the rounded nose tip and on the brow ridge it slides by several mm, and more where the skin
+itself slid (a brow raise moves the brows 5-15 mm up the forehead). The relief does not
+slide: the nose tip is the face's most protruding point, and the brow's soft tissue is a
+ridge that moves with the brow. Each feature label is found as such an extremum near its
+transferred position, then moved by its calibrated offset from the extremum to the label
+(:attr:`jaxface.detect.definitions.LandmarkDefinitions.offsets_mm`).
+
+* **Nose tip** (:func:`nose_tip_extremum`): the scan vertex of largest ``p . forward`` within
+  :data:`TIP_RADIUS_MM` of the transferred tip.
+* **Brows** (:func:`brow_extremum`): on the vertical profile of the surface through the
+  transferred brow point (within :data:`BROW_SLAB_MM` of it along ``left``, and
+  :data:`BROW_HALF_RANGE_MM` along ``up``), the depth along ``forward`` is averaged in 1 mm
+  bins, smoothed (Gaussian, :data:`BROW_SMOOTH_MM`), and its maximum is the ridge. No ridge is
+  returned when the profile has gaps over more than 30 % of its bins or peaks at its ends
+  (the transferred point is kept).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import KDTree
+
+from ..closest import SurfaceIndex
+from ..landmarks import FACE_LABELS
+
+__all__ = [
+    "BROW_LABELS",
+    "FEATURE_LABELS",
+    "brow_extremum",
+    "feature_extrema",
+    "nose_tip_extremum",
+]
+
+TIP_RADIUS_MM = 8.0
+BROW_HALF_RANGE_MM = 12.0
+BROW_SLAB_MM = 2.0
+BROW_SMOOTH_MM = 1.5
+BROW_DEPTH_MM = 15.0
+
+BROW_LABELS: tuple[str, ...] = tuple(n for n in FACE_LABELS if n.endswith("eyebrow"))
+#: labels placed at a relief extremum plus a calibrated offset
+FEATURE_LABELS: tuple[str, ...] = (*BROW_LABELS, "Nose tip")
+
+
+def nose_tip_extremum(
+    vertices: np.ndarray, tree: KDTree, tip: np.ndarray, forward: np.ndarray
+) -> np.ndarray | None:
+    """The vertex of largest ``p . forward`` within :data:`TIP_RADIUS_MM` of ``tip`` (``(3,)``
+    mm); ``None`` when no vertex is that close."""
+    ids = np.asarray(tree.query_ball_point(tip, TIP_RADIUS_MM), dtype=np.int64)
+    if ids.size == 0:
+        return None
+    return vertices[ids[np.argmax(vertices[ids] @ forward)]].copy()
+
+
+def brow_extremum(
+    index: SurfaceIndex,
+    guess: np.ndarray,
+    left: np.ndarray,
+    up: np.ndarray,
+    forward: np.ndarray,
+) -> np.ndarray | None:
+    """The brow ridge on the vertical profile through ``guess`` (see the module doc), ``(3,)``
+    mm (on the smoothed profile; snap it to the surface); ``None`` when the profile is too
+    incomplete or has no interior maximum.
+
+    The profile is sampled on the surface, whatever the mesh's resolution: points of the
+    plane through ``guess`` spanned by ``up`` and ``forward`` (every 0.5 mm along ``up``, at
+    five depths from -6 to +6 mm) are moved to their closest surface points, and those within
+    :data:`BROW_SLAB_MM` of the plane, off the scan's border, are binned along ``up``.
+    """
+    half = BROW_HALF_RANGE_MM
+    s = np.arange(-half - 2.0, half + 2.0 + 1e-9, 0.5)
+    t = np.linspace(-6.0, 6.0, 5)
+    q = guess + s[:, None, None] * up + t[None, :, None] * forward
+    cp = index.query(q.reshape(-1, 3))
+    keep = ~(cp.on_boundary & (cp.distances > 1.0))
+    d = cp.points[keep] - guess
+    a, su, z = d @ left, d @ up, d @ forward
+    m = (np.abs(a) < BROW_SLAB_MM) & (np.abs(su) <= half) & (np.abs(z) < BROW_DEPTH_MM)
+    if m.sum() < 10:
+        return None
+    bins = np.arange(-half, half + 1e-9, 1.0)
+    k = np.clip(np.round(su[m] + half).astype(np.int64), 0, len(bins) - 1)
+    cnt = np.bincount(k, minlength=len(bins))
+    depth = np.bincount(k, z[m], minlength=len(bins))
+    ok = cnt > 0
+    if ok.sum() < 0.7 * len(bins):
+        return None
+    prof = np.interp(bins, bins[ok], depth[ok] / np.maximum(cnt[ok], 1))
+    r = int(np.ceil(3.0 * BROW_SMOOTH_MM))
+    ker = np.exp(-0.5 * (np.arange(-r, r + 1) / BROW_SMOOTH_MM) ** 2)
+    smooth = np.convolve(np.pad(prof, r, mode="edge"), ker / ker.sum(), mode="valid")
+    i = int(np.argmax(smooth))
+    if i in (0, len(bins) - 1):
+        return None
+    return guess + bins[i] * up + smooth[i] * forward
+
+
+def feature_extrema(
+    index: SurfaceIndex,
+    guesses: dict[str, np.ndarray],
+    left: np.ndarray,
+    up: np.ndarray,
+    forward: np.ndarray,
+) -> dict[str, np.ndarray]:
+    """Extrema of the :data:`FEATURE_LABELS` in ``guesses`` (label -> transferred ``(3,)`` mm);
+    labels whose extremum is not found are left out.
+
+    Arguments:
+        index: the scan's surface (mm).
+        left, up, forward: ``(3,)`` unit vectors of the face frame (scan frame).
+    """
+    used = np.unique(index.triangles[index.active_ids])
+    v = index.vertices[used]
+    tree = KDTree(v)
+    out = {}
+    for n, g in guesses.items():
+        if n == "Nose tip":
+            p = nose_tip_extremum(v, tree, np.asarray(g, float), forward)
+        elif n in BROW_LABELS:
+            p = brow_extremum(index, np.asarray(g, float), left, up, forward)
+        else:
+            continue
+        if p is not None:
+            out[n] = p
+    return out
