@@ -58,10 +58,10 @@ def mapped_points(
     points: dict[str, np.ndarray] = {}
     names = [n for n in CALIBRATED_LABELS if n in truth]
     if names:
-        tri = np.asarray(tpl.mesh.triangles)
-        rest = np.asarray(tpl.mesh.vertices)
-        q = SurfaceIndex(np.asarray(reg.mesh.vertices), tri).query(truth.array(names))
-        points = dict(zip(names, np.einsum("nk,nkd->nd", q.bary, rest[tri[q.triangles]])))
+        # attached to the registered face, carried back by the same barycentric weights
+        attached, _ = reg.mesh.closest_points(truth.array(names))
+        rest = attached.positions(tpl.mesh.vertices, tpl.mesh.triangles)
+        points = dict(zip(names, np.asarray(rest, np.float64)))
     guesses = {n: reg.landmarks[n] for n in FEATURE_LABELS if n in truth}
     T = pose.transform
     found = feature_extrema(index, guesses, pose.left, pose.up, pose.forward)
