@@ -15,9 +15,13 @@ the overall mean / max and the wall time per detection, and writes
 ``benchmarks/results/bench_landmarks.json``. Timings are wall-clock on whatever machine runs
 it (say which, and how loaded, when you quote them).
 
-``--fit``: per subject, ``jaxface fit`` (quick settings) of each expression scan with the
-truth landmarks and with detected ones (neutral and scans), side by side: scan -> fit mean
-error (mm) and the three strongest AUs. Expensive (two fits per subject).
+``--fit``: per subject, ``jaxface fit`` (quick settings) of each expression scan once per
+``--pairs NEUTRAL:SCANS`` of landmark sources (``truth`` or ``detected``; default the truth
+landmarks, then detected ones for the neutral and the scans; ``--detected-landmark-weight``
+sets :attr:`jaxface.fit.options.FitOptions.detected_landmark_weight`), side by side: the mean error of
+the fitted skin against the scan's truth mesh (:func:`jaxface.fit.evaluation.evaluate_against_truth`,
+mm), the scan -> fit mean distance (mm) and the three strongest AUs. Expensive (two fits per
+subject).
 """
 
 from __future__ import annotations
@@ -136,54 +140,123 @@ def bench_detection(stems, root: Path) -> dict:
     return {"summary": summary, "rows": rows, "seconds_median": float(np.median(times))}
 
 
-def bench_fit(stems, root: Path) -> dict:
+def _detected_lm3(paths, folder: Path) -> dict[Path, Path]:
+    """Detect the landmarks of each scan once and write them as ``.lm3`` into ``folder``, with
+    the header of ``jaxface landmarks`` (so the fit reads them as detected)."""
+    from jaxface.landmarks import DETECTED_LM3_HEADER, write_lm3
+
+    out = {}
+    for p in paths:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            scan = load_scan(p, landmarks=False, warn_missing=False)
+            det = detect_landmarks(scan)
+        out[p] = folder / f"{p.stem}.lm3"
+        write_lm3(out[p], det.landmarks, comment=DETECTED_LM3_HEADER)
+    return out
+
+
+def bench_fit(stems, root: Path, pairs=("truth:truth", "detected:detected"), weight=None) -> dict:
+    """Fit each subject's expression scans once per ``neutral:scans`` landmark source pair
+    (``truth`` = the ``.lm3`` beside the scan, ``detected`` = detected by
+    :mod:`jaxface.detect`); the first pair is the reference of the ratios."""
+    import dataclasses
+
     from jaxface.commands.fit import run_fit
+    from jaxface.fit.evaluation import evaluate_against_truth, load_truth
     from jaxface.fit.options import FitOptions
     from jaxface.fit.pipeline import SubjectOptions
 
     opts = FitOptions(n_points=600, outer_iterations=3, max_steps=20)
+    if weight is not None:
+        opts = dataclasses.replace(opts, detected_landmark_weight=float(weight))
     sopts = SubjectOptions(levels=2, pitch_knots=6)
+    truth = load_truth()
     out = []
     for subject in sorted({s.split("_")[0] for s in stems}):
         scans = [root / f"{s}.bnt" for s in stems if s.startswith(subject) and "_N_N_" not in s]
         neutral = root / f"{subject}_N_N_0.bnt"
         res = {}
-        for mode in ("file", "auto"):
-            with tempfile.TemporaryDirectory() as tmp:
-                t0 = time.perf_counter()
-                fits = run_fit(
-                    neutral,
-                    scans,
-                    Path(tmp),
-                    options=opts,
-                    subject_options=sopts,
-                    landmarks=mode,
-                    notice=lambda s: None,
-                )
-                res[mode] = {
+        with tempfile.TemporaryDirectory() as lm_dir:
+            det = (
+                _detected_lm3([neutral, *scans], Path(lm_dir))
+                if any("detected" in p for p in pairs)
+                else {}
+            )
+            for pair in pairs:
+                n_src, s_src = pair.split(":")
+                with tempfile.TemporaryDirectory() as tmp:
+                    t0 = time.perf_counter()
+                    fits = run_fit(
+                        neutral,
+                        scans,
+                        Path(tmp),
+                        neutral_landmarks=det[neutral] if n_src == "detected" else None,
+                        scan_landmarks=[det[p] for p in scans] if s_src == "detected" else None,
+                        options=opts,
+                        subject_options=sopts,
+                        notice=lambda s: None,
+                    )
+                res[pair] = {
                     r.stem: {
+                        "truth_error_mm": float(
+                            evaluate_against_truth(r.fitted, truth, r.stem).error["all"].mean
+                        ),
                         "scan_to_fit_mean_mm": float(r.metrics.scan_to_fit["all"].mean),
                         "top_aus": [k for k, _ in r.strongest_aus(3, bilateral_only=True)],
                     }
                     for r in fits
                 }
-                print(f"{subject} {mode}: {time.perf_counter() - t0:.0f} s")
-        for stem in res["file"]:
-            a, b = res["file"][stem], res["auto"][stem]
-            ratio = b["scan_to_fit_mean_mm"] / a["scan_to_fit_mean_mm"]
+                print(f"{subject} {pair}: {time.perf_counter() - t0:.0f} s")
+        ref = pairs[0]
+        for stem in res[ref]:
+            a = res[ref][stem]
+            row = {"stem": stem, ref: a}
+            line = f"{stem:22s} {ref} {a['truth_error_mm']:.3f} mm {a['top_aus']}"
+            for pair in pairs[1:]:
+                b = res[pair][stem]
+                row[pair] = dict(b, ratio=b["truth_error_mm"] / a["truth_error_mm"])
+                line += f" | {pair} {b['truth_error_mm']:.3f} mm {b['top_aus']} ratio {row[pair]['ratio']:.2f}"
+            print(line)
+            out.append(row)
+        for pair in pairs[1:]:
+            r = np.array([o[pair]["ratio"] for o in out if o["stem"].startswith(subject)])
+            e = np.mean([o[pair]["truth_error_mm"] for o in out if o["stem"].startswith(subject)])
             print(
-                f"{stem:22s} truth lm {a['scan_to_fit_mean_mm']:.3f} mm {a['top_aus']}  |  "
-                f"detected {b['scan_to_fit_mean_mm']:.3f} mm {b['top_aus']}  ratio {ratio:.2f}"
+                f"{subject} {pair}: mean error {e:.3f} mm, ratio to {ref} mean {r.mean():.3f}, "
+                f"within 10 % on {(r <= 1.1).sum()} of {len(r)}"
             )
-            out.append({"stem": stem, "truth": a, "detected": b, "ratio": ratio})
-    return {"fit": out}
+    return {
+        "fit": out,
+        "pairs": list(pairs),
+        "detected_landmark_weight": opts.detected_landmark_weight,
+    }
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     ap.add_argument("--stems", nargs="*", default=None, help="scan stems (default: all)")
     ap.add_argument("--fit", action="store_true", help="fit with truth vs detected landmarks")
+    ap.add_argument(
+        "--pairs",
+        nargs="*",
+        default=["truth:truth", "detected:detected"],
+        help="--fit: landmark sources NEUTRAL:SCANS (truth|detected), the first the reference",
+    )
+    ap.add_argument(
+        "--detected-landmark-weight",
+        type=float,
+        default=None,
+        help="--fit: FitOptions.detected_landmark_weight (default: the library's)",
+    )
     args = ap.parse_args()
+    for pair in args.pairs:
+        if sorted(pair.split(":")) not in (
+            ["truth", "truth"],
+            ["detected", "truth"],
+            ["detected", "detected"],
+        ):
+            ap.error(f"--pairs {pair!r}: use NEUTRAL:SCANS with truth or detected")
     root = shared_path("data", "bosphorus_style", pytest_skip=False)
     stems = args.stems or sorted(p.name[: -len(".bnt")] for p in root.glob("*.bnt"))
     result = {
@@ -192,7 +265,11 @@ def main() -> None:
         "load_avg_at_start": os.getloadavg(),
         "stems": stems,
     }
-    result.update(bench_fit(stems, root) if args.fit else bench_detection(stems, root))
+    result.update(
+        bench_fit(stems, root, tuple(args.pairs), args.detected_landmark_weight)
+        if args.fit
+        else bench_detection(stems, root)
+    )
     dest = Path(__file__).parent / "results"
     dest.mkdir(exist_ok=True)
     name = "bench_landmarks_fit.json" if args.fit else "bench_landmarks.json"

@@ -944,3 +944,49 @@ def test_scan_points_are_drawn_from_the_moving_region_as_the_options_say(round_t
         "n_moving"
     ]
     assert far(few) > few["n_moving"]  # the rest holds moving points beyond 0.3 mm too
+
+
+def test_detected_landmarks_align_but_do_not_pull_the_skin(round_trip):
+    """Landmarks detected from the scans (``Scan.landmarks_detected``, the scan's or the
+    neutral's) enter the landmark term at ``FitOptions.detected_landmark_weight`` (default 0):
+    mouth landmarks detected 6 mm off leave the recovered activations within the round trip's
+    bound, while the same landmarks read from a file pull them away."""
+    from jaxface.fit.align import align_scans
+    from jaxface.fit.pipeline import fit_expressions, scan_fit_inputs
+    from jaxface.landmarks import Landmarks
+
+    subject, res, _, opt, expr, _ = round_trip
+    T = align_scans(expr, subject.neutral, fixed_index=subject.neutral_index).transform
+    assert scan_fit_inputs(subject, expr, T, 50)["landmark_scale"] == 1.0
+    det = expr.with_landmarks(expr.landmarks, detected=True)
+    assert det.landmarks_detected and not expr.landmarks_detected
+    assert scan_fit_inputs(subject, det, T, 50)["landmark_scale"] == 0.0
+    inp = scan_fit_inputs(subject, det, T, 50, detected_landmark_weight=0.3)
+    assert inp["landmark_scale"] == 0.3
+    d_neutral = dataclasses.replace(
+        subject, neutral=subject.neutral.with_landmarks(subject.neutral.landmarks, detected=True)
+    )
+    assert scan_fit_inputs(d_neutral, expr, T, 50)["landmark_scale"] == 0.0
+
+    # the mouth and chin labels (never used by the alignment) 6 mm too high
+    lm = expr.landmarks
+    moved = np.array(
+        [
+            p + (np.array([0.0, 6.0, 0.0]) if ("lip" in n or "mouth" in n or "Chin" in n) else 0.0)
+            for n, p in zip(lm.names, np.asarray(lm.positions))
+        ]
+    )
+    off = Landmarks(lm.names, moved)
+    strong = dataclasses.replace(opt, landmark_weight=2.0)  # a pull that shows
+    (as_detected,) = fit_expressions(
+        subject, [expr.with_landmarks(off, detected=True)], options=strong
+    )
+    (from_file,) = fit_expressions(subject, [expr.with_landmarks(off)], options=strong)
+    names = list(TRUE)
+    a_det = np.array([as_detected.activations[n] for n in names])
+    a_file = np.array([from_file.activations[n] for n in names])
+    a_true = np.array([TRUE[n] for n in names])
+    # the round trip's own bound (test_round_trip_recovers_activations_jaw_and_surface)
+    assert np.abs(a_det - a_true).max() < 0.05, (a_det, a_true)
+    assert np.abs(a_file - a_true).max() > 0.1, (a_file, a_true)
+    assert as_detected.metrics.scan_to_fit["all"].mean < 0.1

@@ -181,6 +181,29 @@ def test_load_mesh_scan_with_lm3(shared):
     assert np.array_equal(m.vertices, s.points)  # vertex order kept (ICT ids stay valid)
 
 
+def test_a_detected_lm3_loads_as_detected(shared, tmp_path):
+    """A ``.lm3`` written by ``jaxface landmarks`` (its header) loads with
+    ``Scan.landmarks_detected``, beside the scan or given explicitly; a hand-made one, or the
+    same points under another header, does not."""
+    from jaxface.landmarks import DETECTED_LM3_HEADER, lm3_is_detected, read_lm3, write_lm3
+
+    src = shared(*DATA, "bs900_UFAU_1_0.truth.ply")
+    lm = read_lm3(shared(*DATA, "bs900_UFAU_1_0.lm3"))
+    assert not load_scan(src).landmarks_detected
+    det = tmp_path / "det.lm3"
+    write_lm3(det, lm, comment=f"{DETECTED_LM3_HEADER} from x.bnt (mm, scan frame)")
+    hand = tmp_path / "hand.lm3"
+    write_lm3(hand, lm, comment=f"placed by hand; not {DETECTED_LM3_HEADER}")
+    assert lm3_is_detected(det) and not lm3_is_detected(hand)
+    s = load_scan(src, landmarks=det)
+    assert s.landmarks_detected
+    np.testing.assert_array_equal(s.landmarks.positions, lm.positions)
+    assert not load_scan(src, landmarks=hand).landmarks_detected
+    # another set of landmarks given later is not detected unless said so
+    assert not s.with_landmarks(lm).landmarks_detected
+    assert s.with_landmarks(lm, detected=True).landmarks_detected
+
+
 # ------------------------------------------------------------------------------------------
 # round trips and meshing on synthetic grids
 # ------------------------------------------------------------------------------------------

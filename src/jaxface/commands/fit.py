@@ -60,7 +60,8 @@ def load_fit_scan(
         scan = load_scan(path, landmarks=False if auto and landmarks is None else landmarks)
     _show_label_warnings(caught)
     if scan.landmarks is None:
-        scan = scan.with_landmarks(detect_for(scan, f"{what} {path.name}", notice).landmarks)
+        det = detect_for(scan, f"{what} {path.name}", notice)
+        scan = scan.with_landmarks(det.landmarks, detected=True)
     return scan
 
 

@@ -60,7 +60,7 @@ def run_landmarks(scan_path: Path, out: Path | None = None, *, units: str = "mm"
     from ..detect import detect_landmarks
     from ..errors import DataNotFoundError
     from ..io import load_scan
-    from ..landmarks import write_lm3
+    from ..landmarks import DETECTED_LM3_HEADER, write_lm3
 
     scan_path = Path(scan_path)
     if not scan_path.is_file():
@@ -70,7 +70,7 @@ def run_landmarks(scan_path: Path, out: Path | None = None, *, units: str = "mm"
     out = Path(out) if out is not None else scan_path.with_suffix(".lm3")
     out.parent.mkdir(parents=True, exist_ok=True)
     comment = (
-        f"landmarks detected automatically by jaxface from {scan_path.name} (mm, scan frame)\n"
+        f"{DETECTED_LM3_HEADER} from {scan_path.name} (mm, scan frame)\n"
         + "".join(f"omitted {n}: {r}\n" for n, r in det.omitted.items())
     ).rstrip("\n")
     fd, tmp = tempfile.mkstemp(dir=out.parent, prefix=f".{out.name}.", suffix=".lm3")

@@ -32,6 +32,9 @@ class ScanTargets:
         normals: ``(K, 3)`` unit scan normals, or None.
         valid: ``(K,)`` bools (False: padding).
         landmarks: ``(L, 3)`` landmark targets; landmark_valid: ``(L,)`` bools.
+        landmark_scale: factor on ``FitOptions.landmark_weight`` for this scan (1 for
+            landmarks read from files, ``FitOptions.detected_landmark_weight`` for detected
+            ones).
     """
 
     points: np.ndarray
@@ -39,6 +42,7 @@ class ScanTargets:
     valid: np.ndarray
     landmarks: np.ndarray
     landmark_valid: np.ndarray
+    landmark_scale: float = 1.0
 
     @classmethod
     def of(cls, scan: ScanTargets | Mapping[str, Any]) -> ScanTargets:
@@ -62,6 +66,7 @@ class ScanTargets:
             valid=scan["valid"],
             landmarks=scan["landmarks"],
             landmark_valid=scan["landmark_valid"],
+            landmark_scale=float(scan.get("landmark_scale", 1.0)),
         )
 
 

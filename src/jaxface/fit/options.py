@@ -129,6 +129,12 @@ class PriorOptions:
         landmark_weight: ``lambda_lm``, weight of the mean squared landmark error relative to the
             mean squared point-to-plane error; small, because landmarks as 3-D targets also pull
             the skin against the surface's evidence.
+        detected_landmark_weight: factor on ``landmark_weight`` for a scan whose landmarks, or
+            whose neutral's, were detected from the scans' own surfaces (:mod:`jaxface.detect`).
+            Such landmarks are a function of the surface the point term already fits, so they
+            add the detector's error (2-4 mm per label) and no independent evidence; at the
+            default 0 they still align the scans and set the jaw's starting pitch, but do not
+            pull the skin.
         sparsity_weight: ``lambda_s`` (mm^2 per unit activation): L1 prior ``lambda_s a``.
         symmetry_weight: ``lambda_sym`` (mm^2 per unit activation^2).
         symmetry_scale: ``tau`` (unit activation, > 0): the symmetry prior
@@ -139,6 +145,7 @@ class PriorOptions:
     """
 
     landmark_weight: float = 0.05
+    detected_landmark_weight: float = 0.0
     sparsity_weight: float = 2e-4
     symmetry_weight: float = 1e-3
     symmetry_scale: float = 0.1

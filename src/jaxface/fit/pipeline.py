@@ -80,6 +80,7 @@ def scan_fit_inputs(
     preselect_mm: float = 20.0,
     motion_fraction: float = FitOptions.motion_fraction,
     motion_threshold_mm: float = FitOptions.motion_threshold_mm,
+    detected_landmark_weight: float = FitOptions.detected_landmark_weight,
 ) -> dict:
     """The fitter's view of one scan, in the neutral frame (mm).
 
@@ -92,10 +93,12 @@ def scan_fit_inputs(
     from all. Scan normals are flipped when most of them
     point into the face (a mesh scan wound the other way round). Landmark targets: the rig's
     rest landmarks displaced by ``T(q_scan) - q_neutral`` (labels missing in either scan are
-    invalid).
+    invalid), weighted ``landmark_scale = detected_landmark_weight`` when the scan's or the
+    neutral's landmarks were detected (``Scan.landmarks_detected``), else 1.
 
     Returns:
-        dict with ``points``, ``normals``, ``valid``, ``landmarks``, ``landmark_valid``.
+        dict with ``points``, ``normals``, ``valid``, ``landmarks``, ``landmark_valid``,
+        ``landmark_scale``.
     """
     v, tr, _ = scan.mesh_arrays()
     si = SurfaceIndex(v, tr)
@@ -152,6 +155,10 @@ def scan_fit_inputs(
         "valid": valid,
         "landmarks": tgt,
         "landmark_valid": lv,
+        "landmark_scale": float(detected_landmark_weight)
+        if getattr(scan, "landmarks_detected", False)
+        or getattr(subject.neutral, "landmarks_detected", False)
+        else 1.0,
         "n_candidates": int(len(P)),
         "n_moving": int(len(moving)),
         "n_moving_drawn": int(n_moving),
@@ -290,6 +297,7 @@ def fit_expressions(
             seed=opt.seed,
             motion_fraction=opt.motion_fraction,
             motion_threshold_mm=opt.motion_threshold_mm,
+            detected_landmark_weight=opt.detected_landmark_weight,
         )
 
     def read(f):

@@ -172,7 +172,7 @@ class _Fit:
         dfx = np.einsum("kc,kcd->kd", bary, defect_v[ids])
         sc = self.scans[run.scan]
         lw = np.where(np.asarray(sc.landmark_valid, bool), 1.0, 0.0)
-        lw = opt.landmark_weight * lw / max(lw.sum(), 1.0)
+        lw = opt.landmark_weight * sc.landmark_scale * lw / max(lw.sum(), 1.0)
         target = np.concatenate([c.target, np.asarray(sc.landmarks, np.float64)])
         target = np.where(np.isfinite(target), target, 0.0)
         pts = PointSet(

@@ -31,7 +31,7 @@ from .labels import (
     canonical_label,
     fuzzy_label,
 )
-from .lm3 import read_lm3, write_lm3
+from .lm3 import DETECTED_LM3_HEADER, lm3_is_detected, read_lm3, write_lm3
 from .sides import check_side
 
 __all__ = [
@@ -48,6 +48,8 @@ __all__ = [
     "FUZZY_MARGIN",
     "check_side",
     "read_lm3",
+    "lm3_is_detected",
+    "DETECTED_LM3_HEADER",
     "write_lm3",
     "attach_to_mesh",
 ]

@@ -1,5 +1,5 @@
 """Bosphorus ``.lm3`` landmark files (labels and ``x y z`` in mm): :func:`read_lm3`,
-:func:`write_lm3`."""
+:func:`write_lm3`, and :func:`lm3_is_detected` for files that ``jaxface landmarks`` wrote."""
 
 from __future__ import annotations
 
@@ -22,7 +22,19 @@ from .labels import (
     fuzzy_label,
 )
 
-__all__ = ["read_lm3", "write_lm3"]
+__all__ = ["DETECTED_LM3_HEADER", "lm3_is_detected", "read_lm3", "write_lm3"]
+
+#: the first comment line of a ``.lm3`` written by ``jaxface landmarks`` (detected landmarks)
+DETECTED_LM3_HEADER = "landmarks detected automatically by jaxface"
+
+
+def lm3_is_detected(path) -> bool:
+    """True when the ``.lm3`` at ``path`` was written by ``jaxface landmarks``: its comment
+    header begins with :data:`DETECTED_LM3_HEADER`. Such landmarks were detected from the
+    scan's surface, and the fit treats them so (``Scan.landmarks_detected``)."""
+    with open(os.fspath(path), "rb") as fh:
+        head = fh.read(len(DETECTED_LM3_HEADER) + 16).decode("utf-8-sig", errors="replace")
+    return head.lstrip("#").strip().startswith(DETECTED_LM3_HEADER)
 
 
 # ---------------------------------------------------------------------------------------------

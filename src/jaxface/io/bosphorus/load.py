@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from ...errors import LandmarkError, MeshError, ScanFormatError
-from ...landmarks import FACE_LABELS, MIRROR_PAIRS, Landmarks, read_lm3
+from ...landmarks import FACE_LABELS, MIRROR_PAIRS, Landmarks, lm3_is_detected, read_lm3
 from ...mesh import check_input_file, load_mesh
 from .bnt import _unit_scale, read_bnt
 from .grid import _check_points
@@ -93,7 +93,7 @@ def load_scan(
         scale = _unit_scale(units)
         if scale != 1.0:
             lm = lm.transformed(scale=scale)
-        scan = scan.with_landmarks(lm)
+        scan = scan.with_landmarks(lm, detected=lm3_is_detected(lm_path))
     if require:
         scan.require_landmarks(require)
     if warn_missing and scan.landmarks is not None and scan.missing_landmarks:

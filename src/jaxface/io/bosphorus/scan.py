@@ -39,6 +39,10 @@ class Scan:
         path: source file, or ``None``.
         info: parsed file name (:class:`ScanInfo`) or ``None``.
         missing_landmarks: canonical Bosphorus face labels absent from ``landmarks``.
+        landmarks_detected: True when ``landmarks`` were detected from this scan's own
+            surface (:mod:`jaxface.detect`) rather than read from a landmark file; the fit
+            then leaves them out of its landmark term
+            (:attr:`jaxface.fit.options.FitOptions.detected_landmark_weight`).
     """
 
     points: np.ndarray
@@ -53,6 +57,7 @@ class Scan:
     path: Path | None = None
     info: ScanInfo | None = None
     missing_landmarks: tuple[str, ...] = ()
+    landmarks_detected: bool = False
 
     # -- constructors --------------------------------------------------------------------
     @classmethod
@@ -213,9 +218,15 @@ class Scan:
         return TriMesh(v, t, validate=validate)
 
     # -- landmarks -----------------------------------------------------------------------
-    def with_landmarks(self, landmarks) -> Scan:
-        """A copy with other landmarks (mm); ``missing_landmarks`` recomputed."""
-        return replace(self, landmarks=landmarks, missing_landmarks=_missing(landmarks))
+    def with_landmarks(self, landmarks, *, detected: bool = False) -> Scan:
+        """A copy with other landmarks (mm); ``missing_landmarks`` recomputed. ``detected``:
+        they were detected from this scan's surface (:attr:`landmarks_detected`)."""
+        return replace(
+            self,
+            landmarks=landmarks,
+            missing_landmarks=_missing(landmarks),
+            landmarks_detected=bool(detected),
+        )
 
     def require_landmarks(self, names: Iterable[str]) -> Landmarks:
         """The landmarks restricted to ``names``; :class:`LandmarkError` naming the file and
