@@ -16,7 +16,7 @@ from jaxface.detect.definitions import (
     load_definitions,
     save_definitions,
 )
-from jaxface.detect.features import FEATURE_LABELS, feature_extrema
+from jaxface.detect.features import FEATURE_LABELS, NOSE_PEAK_LABELS, feature_extrema
 from jaxface.detect.transfer import build_face_template, face_template
 from jaxface.errors import DataNotFoundError
 from jaxface.fit.align import rotation_from_euler
@@ -33,8 +33,9 @@ def _surface_point(tpl, p):
 def test_calibration_recovers_the_labels_of_a_moved_copy_of_the_head():
     """Independent reference: the "faces" are the head's own face, turned and moved, labelled
     at known points of the head: each calibrated label 4 mm up and 3 mm toward the midline of
-    the head's own landmark (moved onto the surface), each feature label (brows, nose tip) 3 mm
-    above its relief extremum on the head. The registration of a face onto itself is exact,
+    the head's own landmark (moved onto the surface), each other feature label (brows, nose
+    tip) 3 mm above its relief extremum on the head; the nose peaks' offsets are from the
+    alare found from their calibrated points. The registration of a face onto itself is exact,
     so the calibration must return those points (head frame) and offsets."""
     tpl = build_face_template(None)
     v0, f0 = np.asarray(tpl.mesh.vertices), np.asarray(tpl.mesh.triangles)
@@ -43,9 +44,11 @@ def test_calibration_recovers_the_labels_of_a_moved_copy_of_the_head():
         p = np.array(tpl.landmarks[n], float)
         p += [-3.0 * np.sign(p[0]), 4.0, 0.0]
         known[n] = _surface_point(tpl, p)
+    # a feature label with a point too (the nose peaks) is searched from its point, as the
+    # calibration and the detector search it
     ext = feature_extrema(
         SurfaceIndex(v0, f0),
-        {n: tpl.landmarks[n] for n in FEATURE_LABELS},
+        {n: known.get(n, tpl.landmarks[n]) for n in FEATURE_LABELS},
         np.array([1.0, 0.0, 0.0]),
         np.array([0.0, 1.0, 0.0]),
         np.array([0.0, 0.0, 1.0]),
@@ -53,8 +56,10 @@ def test_calibration_recovers_the_labels_of_a_moved_copy_of_the_head():
     # the head has a nose tip and ridges under its inner and middle brows (its outer brows'
     # profile falls away without a maximum: those features are not found on this face)
     assert {"Nose tip", "Inner left eyebrow", "Middle right eyebrow"} <= set(ext)
+    assert set(NOSE_PEAK_LABELS) <= set(ext)
     for n, e in ext.items():
-        known[n] = _surface_point(tpl, e + [0.0, 3.0, 0.0])
+        if n not in CALIBRATED_LABELS:
+            known[n] = _surface_point(tpl, e + [0.0, 3.0, 0.0])
     names = list(known)
     truth_rest = np.stack(list(known.values()))
     faces = []
@@ -111,7 +116,9 @@ def test_the_packaged_definitions_lie_on_the_default_head():
         assert np.linalg.norm(_surface_point(own, p) - p) < 0.05, n
         assert np.linalg.norm(p - own.landmarks[n]) < 15.0, n  # the same anatomical place
     assert set(defs.offsets_mm) == set(FEATURE_LABELS)
-    assert all(np.linalg.norm(o) < 10.0 for o in defs.offsets_mm.values()), defs.offsets_mm
+    # the nose peaks lie on the cheek 10-12 mm beside the alare and 7-9 mm behind it
+    far = {n: 16.0 if n in NOSE_PEAK_LABELS else 10.0 for n in defs.offsets_mm}
+    assert all(np.linalg.norm(o) < far[n] for n, o in defs.offsets_mm.items()), defs.offsets_mm
     tpl = face_template()
     for n in CALIBRATED_LABELS:
         assert np.linalg.norm(tpl.landmarks[n] - defs.points[n]) < 0.05, n
@@ -174,3 +181,33 @@ def test_the_brow_ridge_is_the_profile_maximum():
     keep = ~((v[f][:, :, 1] > -8.0) & (v[f][:, :, 1] < 6.0)).any(axis=1)
     g = np.array([0.0, -2.0, 49.0])
     assert brow_extremum(SurfaceIndex(v, f[keep]), g, left, up, fwd) is None
+
+
+def test_the_alar_edge_is_the_steepest_outward_drop():
+    """Analytic reference: a wing ``z = 50 + 8 / (1 + exp((|x| - w(y)) / 0.6))`` (mm; 8 mm
+    in front of the cheek medial of its edge ``w(y) = 12 - 0.1 y^2``, falling over about
+    2 mm) on a cheek sloping back 0.2 mm per mm, seen along a tilted frame, has its most
+    lateral edge (the alare) found at ``x = 12``, ``y = 0`` from guesses 3 mm above it and
+    6 mm medial to 8 mm lateral of it, for the left side (outward +x) and mirrored for the
+    right (outward -x); a smooth slope gives no edge."""
+    from jaxface.detect.features import alar_edge
+
+    left, up, fwd = np.eye(3)
+    R = rotation_from_euler(-10.0, 20.0)
+
+    def wing(x, y):
+        edge = 12.0 - 0.1 * y**2
+        return 50.0 + 8.0 / (1.0 + np.exp((np.abs(x) - edge) / 0.6)) - 0.2 * np.abs(x)
+
+    v, f = _ridge_grid(wing, step=0.7)
+    idx = SurfaceIndex(v @ R.T, f)
+    for side in (1.0, -1.0):
+        for dx in (-6.0, 0.0, 8.0):
+            x0 = side * (12.0 + dx)
+            guess = R @ np.array([x0, 3.0, wing(x0, 3.0)])
+            p = alar_edge(idx, guess, side * (R @ left), R @ up, R @ fwd)
+            assert p is not None, (side, dx)
+            x, y = (R.T @ p)[:2]
+            assert abs(x - side * 12.0) < 0.8 and abs(y) < 1.01, (side, dx, x, y)
+    v, f = _ridge_grid(lambda x, y: 50.0 - 0.3 * x)
+    assert alar_edge(SurfaceIndex(v, f), np.array([10.0, 0.0, 47.0]), left, up, fwd) is None

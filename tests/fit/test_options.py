@@ -29,6 +29,7 @@ DEFAULTS = {
     "jaw_starts": None,
     "rigid": True,
     "landmark_weight": 0.05,
+    "detected_landmark_weight": 0.0,
     "sparsity_weight": 2e-4,
     "symmetry_weight": 1e-3,
     "symmetry_scale": 0.1,

@@ -16,9 +16,11 @@ The definitions in ``data/landmark_definitions.json`` remove it, in two ways:
 * **Points** for the labels on a smooth surface (:data:`CALIBRATED_LABELS`: the nose saddles,
   nose peaks, the outer lip midpoints and the chin): the point of the head the registration
   carries instead of the head's own landmark.
-* **Offsets** for the labels found at a relief extremum (:data:`jaxface.detect.features.
-  FEATURE_LABELS`: the nose tip and the brows, :mod:`jaxface.detect.features`): the offset
-  from the extremum to the label, in the head frame (x left, y up, z forward).
+* **Offsets** for the labels found at a relief feature (:data:`jaxface.detect.features.
+  FEATURE_LABELS`: the nose tip, the brows and the nose peaks, :mod:`jaxface.detect.features`):
+  the offset from the feature to the label, in the head frame (x left, y up, z forward). The
+  nose peaks have both: the point is where the search for the ala's edge starts, and where
+  the label stays when the edge is not found.
 
 Both are calibrated (:func:`jaxface.detect.calibrate.calibrate_definitions`) on labelled faces
 that are not used to measure the detector: each face is registered exactly as the detector
@@ -69,7 +71,8 @@ class LandmarkDefinitions:
     Attributes:
         points: label -> ``(3,)`` position on the head's surface at rest, mm.
         spread_mm: label -> mean distance of the single faces' mapped points (or offsets)
-            from the definition, mm (how much the faces and the registration disagree).
+            from the definition, mm (how much the faces and the registration disagree); for
+            a label with both a point and an offset (the nose peaks), the offsets' spread.
         offsets_mm: label -> ``(3,)`` mean offset from the label's relief extremum
             (:func:`jaxface.detect.features.feature_extrema`) to the label, head frame (x
             left, y up, z forward), mm.
