@@ -73,6 +73,18 @@ def nose_tip_extremum(
     return vertices[ids[np.argmax(vertices[ids] @ forward)]].copy()
 
 
+def _profile(index, guess, along, across, forward, s, t):
+    """Surface samples of the plane through ``guess`` spanned by ``along`` and ``forward``:
+    the grid ``guess + s along + t forward`` (mm) moved to its closest surface points, those
+    on the scan's border more than 1 mm away dropped. Returns their coordinates from
+    ``guess`` along ``across``, ``along`` and ``forward`` (mm)."""
+    q = guess + s[:, None, None] * along + t[None, :, None] * forward
+    cp = index.query(q.reshape(-1, 3))
+    keep = ~(cp.on_boundary & (cp.distances > 1.0))
+    d = cp.points[keep] - guess
+    return d @ across, d @ along, d @ forward
+
+
 def brow_extremum(
     index: SurfaceIndex,
     guess: np.ndarray,
@@ -91,12 +103,7 @@ def brow_extremum(
     """
     half = BROW_HALF_RANGE_MM
     s = np.arange(-half - 2.0, half + 2.0 + 1e-9, 0.5)
-    t = np.linspace(-6.0, 6.0, 5)
-    q = guess + s[:, None, None] * up + t[None, :, None] * forward
-    cp = index.query(q.reshape(-1, 3))
-    keep = ~(cp.on_boundary & (cp.distances > 1.0))
-    d = cp.points[keep] - guess
-    a, su, z = d @ left, d @ up, d @ forward
+    a, su, z = _profile(index, guess, up, left, forward, s, np.linspace(-6.0, 6.0, 5))
     m = (np.abs(a) < BROW_SLAB_MM) & (np.abs(su) <= half) & (np.abs(z) < BROW_DEPTH_MM)
     if m.sum() < 10:
         return None
@@ -123,12 +130,7 @@ def _alar_step(index, guess, outward, up, forward):
     over 4 mm; ``None`` when the profile is too incomplete."""
     lo, hi = -ALA_MEDIAL_MM, ALA_LATERAL_MM
     s = np.arange(lo - 2.0, hi + 2.0 + 1e-9, 0.5)
-    t = np.linspace(-8.0, 16.0, 7)
-    q = guess + s[:, None, None] * outward + t[None, :, None] * forward
-    cp = index.query(q.reshape(-1, 3))
-    keep = ~(cp.on_boundary & (cp.distances > 1.0))
-    d = cp.points[keep] - guess
-    a, so, z = d @ up, d @ outward, d @ forward
+    a, so, z = _profile(index, guess, outward, up, forward, s, np.linspace(-8.0, 16.0, 7))
     m = (np.abs(a) < 0.5 * ALA_ROW_MM) & (so >= lo) & (so <= hi) & (np.abs(z) < 2 * BROW_DEPTH_MM)
     if m.sum() < 10:
         return None
