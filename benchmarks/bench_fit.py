@@ -17,7 +17,9 @@ can come.
 batch a second time, once its solves are compiled (``batch_warm``: on an accelerator the
 first batch compiles the vmapped inner solve for its padded size). ``--sweeps`` builds the subjects' rigs with other quasi-static sweep counts than
 :func:`jaxface.anatomy.build_rig`'s 32/8 (as ``jaxface synth --sweeps``; the round trips keep
-the defaults); ``--results`` writes the JSON and the picture elsewhere than
+the defaults); ``--rig-option NAME=JSON`` (repeatable) passes a
+:func:`jaxface.anatomy.build_rig` option to the subjects' rigs and ``--pitch-knots`` sets
+``SubjectOptions.pitch_knots``; ``--results`` writes the JSON and the picture elsewhere than
 ``benchmarks/results``.
 
 Measures (units mm, degrees, seconds):
@@ -612,6 +614,15 @@ def main() -> None:
         help="fit the muscles and the jaw only (SubjectOptions.cheek_puff=False)",
     )
     ap.add_argument(
+        "--rig-option",
+        action="append",
+        default=[],
+        metavar="NAME=JSON",
+        help="a build_rig option of the subjects' rigs, e.g. jaw_protrusion_limits_mm=[-2,10] "
+        "(repeatable)",
+    )
+    ap.add_argument("--pitch-knots", type=int, default=None, help="SubjectOptions.pitch_knots")
+    ap.add_argument(
         "--results",
         default=None,
         help="folder of the JSON and the picture (default benchmarks/results)",
@@ -659,11 +670,21 @@ def main() -> None:
         rig_kwargs = dict(muscle_iterations=m, skin_iterations=k, skin_chebyshev_rho=rho)
     if args.muscle_map:
         rig_kwargs["muscle_map"] = args.muscle_map
-    subject_options = SubjectOptions(rig_kwargs=rig_kwargs, cheek_puff=not args.no_cheek_puff)
+    for item in args.rig_option:
+        name, sep, value = item.partition("=")
+        if not sep:
+            ap.error(f"--rig-option wants NAME=JSON, got {item!r}")
+        v = json.loads(value)
+        rig_kwargs[name.strip()] = tuple(v) if isinstance(v, list) else v
+    knots = {} if args.pitch_knots is None else {"pitch_knots": args.pitch_knots}
+    subject_options = SubjectOptions(
+        rig_kwargs=rig_kwargs, cheek_puff=not args.no_cheek_puff, **knots
+    )
     report = {
         "machine": _machine(),
         "options": {k: (list(v) if isinstance(v, tuple) else v) for k, v in opt.__dict__.items()},
         "rig_kwargs": rig_kwargs,
+        "pitch_knots": args.pitch_knots,
         "cheek_puff": not args.no_cheek_puff,
         "subjects": [],
     }

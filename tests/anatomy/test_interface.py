@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from jaxface.anatomy.interface import FaceRig, RigConfig, configure, rig_backend
-from jaxface.anatomy.jaw import PITCH_LIMITS_DEG, JawPose
+from jaxface.anatomy.jaw import PITCH_LIMITS_DEG, PROTRUSION_LIMITS_MM, JawPose
 from jaxface.anatomy.muscles import SHELL_STIFFNESS
 from jaxface.anatomy.rig import Rig, RigInfo, build_rig, synthesize
 from jaxface.anatomy.rig_common import BuildInfo, RigBase
@@ -202,6 +202,7 @@ def test_configs_round_trip_their_defaults():
         "muscle_shell_stiffness": SHELL_STIFFNESS,
         "fat_volume": FAT_VOLUME,
         "jaw_pitch_limits_deg": PITCH_LIMITS_DEG,  # JawModel's default before the option
+        "jaw_protrusion_limits_mm": PROTRUSION_LIMITS_MM,
     }
     assert FOOTPRINT_MM == (10.0, 10.0) and FOOTPRINT_CLUSTER_MM == 5.0
     assert JAW_FOLLOW_MM == (30.0, 100.0) and FAT_VOLUME == (0.5, 0.0)

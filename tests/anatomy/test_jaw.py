@@ -186,6 +186,23 @@ def test_build_rig_refuses_impossible_jaw_pitch_limits(limits):
         build_rig(generic_head(), jaw_pitch_limits_deg=limits)
 
 
+@pytest.mark.parametrize("limits", [(1.0, 8.0), (-2.0, 0.0), (-2.0, 25.0), (float("nan"), 8.0)])
+def test_build_rig_refuses_impossible_jaw_protrusion_limits(limits):
+    with pytest.raises(RigError, match="jaw_protrusion_limits_mm"):
+        build_rig(generic_head(), jaw_protrusion_limits_mm=limits)
+
+
+def test_the_protrusion_limit_stops_the_incisors_at_the_set_translation():
+    head = generic_head()
+    chin = jnp.asarray(head.landmarks["Chin middle"])
+    for hi in (6.0, 10.0):
+        jaw = JawModel.from_landmarks(head.landmarks, protrusion_limits=(-2.0, hi))
+        R, t = jaw.transform(JawPose(protrusion_mm=jnp.asarray(40.0)))  # saturates at the limit
+        np.testing.assert_allclose(float(jnp.linalg.norm(R @ chin + t - chin)), hi, atol=1e-6)
+        R, t = jaw.transform(JawPose(protrusion_mm=jnp.asarray(-40.0)))
+        np.testing.assert_allclose(float(jnp.linalg.norm(R @ chin + t - chin)), 2.0, atol=1e-6)
+
+
 def test_the_full_anatomical_range_drops_the_chin_as_far_as_a_wide_open_mouth():
     # a wide-open mouth drops the chin 40-50 mm (ICT-FaceKit's jawOpen: 42 mm); the default
     # 18 degree limit stops short of it, jaw_pitch_limits_deg=(-4, 28) reaches it

@@ -5,7 +5,7 @@
 * **yaw** rotates about the axis through the top of the skull (11.4) and the condyle
   midpoint; positive turns the chin toward the subject's left (+x); limits -5..5 degrees;
 * **protrusion** translates along the line from the top of the spine (7.1) to the chin
-  (2.10, the "Chin middle" landmark); positive is forward; limits -2..6 mm.
+  (2.10, the "Chin middle" landmark); positive is forward; limits -2..10 mm (``jaw_protrusion_limits_mm``).
 
 The condyles, skull top and spine top are estimated from the Bosphorus landmarks by
 :mod:`jaxface.anatomy.frame`. The mandible motion is ``p' = R p + t`` with ``R = R_yaw R_pitch``
@@ -54,7 +54,10 @@ __all__ = [
 #: ``build_rig(..., jaw_pitch_limits_deg=(-4, 28))`` opens the full range.
 PITCH_LIMITS_DEG = (-4.0, 18.0)
 YAW_LIMITS_DEG = (-5.0, 5.0)
-PROTRUSION_LIMITS_MM = (-2.0, 6.0)
+#: Default protrusion limits, mm (retrusion, protrusion). Adults push the lower incisors about
+#: 7-11 mm forward at the limit of protrusion and pull them back 1-2 mm; ICT-FaceKit's
+#: ``jawForward`` moves the lower lip 11 mm forward.
+PROTRUSION_LIMITS_MM = (-2.0, 10.0)
 
 
 def smooth_clamp(x, lo: float, hi: float, softness: float):
@@ -83,7 +86,7 @@ class JawPose(eqx.Module):
     Attributes:
         pitch_deg: ``()`` degrees, opening positive (default limits -4..18).
         yaw_deg: ``()`` degrees, chin toward the subject's left (+x) positive (limits -5..5).
-        protrusion_mm: ``()`` mm, forward (+z) positive (limits -2..6).
+        protrusion_mm: ``()`` mm, forward (+z) positive (limits -2..10).
 
     Values outside the limits are accepted: :class:`JawModel` clamps them smoothly.
     Batched poses (leading dimensions) work under ``jax.vmap``.

@@ -12,7 +12,7 @@ from ..mesh import TriMesh
 from ..validate import checked_build
 from .frame import face_frame
 from .interface import RigConfig, configure, register_backend, rig_backend
-from .jaw import JawModel
+from .jaw import PROTRUSION_LIMITS_MM, JawModel
 from .muscle_map import place_muscles, placement_registry
 from .muscles import (
     build_muscle_system,
@@ -62,6 +62,7 @@ def build_rig(
     muscle_shell_stiffness: float | None = None,
     fat_volume: float | tuple | None = None,
     jaw_pitch_limits_deg: tuple[float, float] | None = None,
+    jaw_protrusion_limits_mm: tuple[float, float] | None = None,
 ):
     """Build the rig of a face with either backend.
 
@@ -106,6 +107,7 @@ def build_rig(
         muscle_shell_stiffness=muscle_shell_stiffness,
         fat_volume=fat_volume,
         jaw_pitch_limits_deg=jaw_pitch_limits_deg,
+        jaw_protrusion_limits_mm=jaw_protrusion_limits_mm,
     )
     rb = rig_backend(backend)
     return rb.build(skin, landmarks, skull, muscle_map, configure(rb, config, options))
@@ -127,6 +129,13 @@ def _build_pbd(skin, landmarks, skull, muscle_map, config: PBDRigConfig) -> Rig:
             f"jaw_pitch_limits_deg must be (closing, opening) degrees with closing <= 0 < "
             f"opening <= 45; got {c.jaw_pitch_limits_deg}. The default is (-4, 18); (-4, 28) "
             f"opens the anatomical range."
+        )
+    qlo, qhi = (float(x) for x in c.jaw_protrusion_limits_mm)
+    if not (np.isfinite([qlo, qhi]).all() and -10.0 <= qlo <= 0.0 < qhi <= 20.0):
+        raise RigError(
+            f"jaw_protrusion_limits_mm must be (retrusion, protrusion) mm with -10 <= "
+            f"retrusion <= 0 < protrusion <= 20; got {c.jaw_protrusion_limits_mm}. The "
+            f"default is {PROTRUSION_LIMITS_MM}."
         )
     if not isinstance(skin, TriMesh) and hasattr(skin, "mesh"):
         head = skin
@@ -190,7 +199,7 @@ def _build_pbd(skin, landmarks, skull, muscle_map, config: PBDRigConfig) -> Rig:
         membrane=membrane,
         fat_volume=fat_volume,
     )
-    jaw = JawModel.from_landmarks(frame, pitch_limits=(plo, phi))
+    jaw = JawModel.from_landmarks(frame, pitch_limits=(plo, phi), protrusion_limits=(qlo, qhi))
     info = RigInfo(
         skin=mesh,
         landmarks=landmarks,

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from typing import Any, ClassVar
 
 from .interface import RigConfig
-from .jaw import PITCH_LIMITS_DEG
+from .jaw import PITCH_LIMITS_DEG, PROTRUSION_LIMITS_MM
 from .muscles import SHELL_STIFFNESS
 
 __all__ = [
@@ -131,6 +131,9 @@ class PBDRigConfig(RigConfig):
         jaw_pitch_limits_deg: ``(closing, opening)`` limits of the jaw's pitch, degrees
             (:class:`~jaxface.anatomy.jaw.JawModel`; default
             :data:`~jaxface.anatomy.jaw.PITCH_LIMITS_DEG`).
+        jaw_protrusion_limits_mm: ``(retrusion, protrusion)`` limits of the jaw's
+            translation along its protrusion direction, mm (default
+            :data:`~jaxface.anatomy.jaw.PROTRUSION_LIMITS_MM`).
     """
 
     backend: ClassVar[str] = "pbd"
@@ -150,3 +153,4 @@ class PBDRigConfig(RigConfig):
     muscle_shell_stiffness: float = SHELL_STIFFNESS
     fat_volume: float | tuple = FAT_VOLUME
     jaw_pitch_limits_deg: tuple[float, float] = PITCH_LIMITS_DEG
+    jaw_protrusion_limits_mm: tuple[float, float] = PROTRUSION_LIMITS_MM

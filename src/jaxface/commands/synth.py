@@ -253,7 +253,7 @@ def register(app: typer.Typer) -> None:
             0.0, "--jaw-yaw", help="Jaw yaw toward the subject's left, degrees (-5..5)."
         ),
         jaw_protrusion: float = typer.Option(
-            0.0, "--jaw-protrusion", help="Jaw protrusion, mm (-2..6)."
+            0.0, "--jaw-protrusion", help="Jaw protrusion, mm (-2..10)."
         ),
         intensity: float = typer.Option(
             1.0, "--intensity", min=0.0, max=1.0, help="Scale of the emotion presets."
