@@ -1,8 +1,9 @@
 """The anatomy's expressive range (issue 44), pinned qualitatively on the default head: the
-frontalis lifts every part of the brows by more than 10 mm (the default map), and with the range variant of
-the muscle map (:data:`jaxface.anatomy.muscle_map.RANGE_EDITS`, opt-in) pursed lips move the
-mouth corners toward the mid-line and forward, the cheeks hollow as the lips protrude, and the
-protrusion is smooth at rest. Units mm."""
+frontalis lifts every part of the brows by more than 10 mm (the default map); with the range
+variant of the muscle map (:data:`jaxface.anatomy.muscle_map.RANGE_EDITS`, opt-in) the mouth
+ring lies on the teeth behind the red lip and the red lip on the ring, so pursed lips move
+the mouth corners toward the mid-line and forward and the lips themselves forward, the cheeks
+hollow as the lips protrude, and the protrusion is smooth at rest. Units mm."""
 
 import json
 from importlib.resources import files
@@ -13,7 +14,7 @@ import numpy as np
 import pytest
 
 from jaxface import facs
-from jaxface.anatomy.muscle_map import RANGE_EDITS, load_muscle_map
+from jaxface.anatomy.muscle_map import RANGE_EDITS, load_muscle_map, skull_registry
 from jaxface.anatomy.muscles import moved_skull_points, sample_targets
 from jaxface.anatomy.rig import build_rig, synthesize
 from jaxface.errors import RigError
@@ -60,6 +61,73 @@ def test_pucker_moves_the_corners_medially_and_forward(head, rest, pucker):
     dl = pucker[_vertex(rest, head, "Left mouth corner")]
     dr = pucker[_vertex(rest, head, "Right mouth corner")]
     np.testing.assert_allclose(dl * [-1, 1, 1], dr, atol=0.3)
+
+
+def test_pucker_moves_the_lips_forward(head, rest, pucker):
+    """The red lip is bound to the ring, so the protruding ring carries the lips off the
+    teeth (ICT-FaceKit's ``mouthPucker``: 6-9 mm at the lip mid-line)."""
+    for label in ("Upper lip outer middle", "Upper lip inner middle", "Lower lip inner middle"):
+        d = pucker[_vertex(rest, head, label)]
+        assert d[2] >= 3.0, (label, d)
+        assert abs(d[0]) < 0.1, (label, d)  # on the mid-line, by symmetry
+
+
+def _red_lip(rig, head):
+    """Skin vertices of the red lip: between the mouth corners, from the outer middle of the
+    upper lip to that of the lower, in front of the corners."""
+    x = np.asarray(rig.info.skin.vertices)
+    lm = {k: np.asarray(head.landmarks[k]) for k in head.landmarks.names}
+    lc, rc = lm["Left mouth corner"], lm["Right mouth corner"]
+    top, bottom = lm["Upper lip outer middle"][1], lm["Lower lip outer middle"][1]
+    return np.flatnonzero(
+        (x[:, 0] < lc[0] - 3)
+        & (x[:, 0] > rc[0] + 3)
+        & (x[:, 1] < top - 1)
+        & (x[:, 1] > bottom + 1)
+        & (x[:, 2] > lc[2])
+    )
+
+
+def test_the_red_lip_lies_on_the_orbicularis_oris(range_rig, head):
+    """Nearly all of the red lip is bound to the ring (before the ring lay on the teeth, a
+    third of the upper red lip missed it and fell back to the cranium above the teeth), and
+    no skin vertex is bound to a tooth."""
+    info = range_rig.info
+    ring = info.registry.index("orbicularis_oris")
+    lip = _red_lip(range_rig, head)
+    assert lip.size > 80
+    on_ring = np.mean(info.binding.surface[lip] == ring)
+    assert on_ring > 0.85, on_ring
+    for k in (0, 1):
+        on = info.binding.surface == k
+        assert np.all(info.binding.tri[on] < info.registry.bones[k].n_triangles)
+
+
+def test_the_mouth_ring_lies_on_the_teeth_behind_the_lips(range_rig, head):
+    """``project: "backward"``: the ring's inner samples lie straight behind their skin points
+    (on the teeth), below the middle ring above the slit and above it below, not folded over
+    the red lip as along the lips' normals (which turn into the mouth slit)."""
+    pm = {p.name: p for p in range_rig.info.placed}["orbicularis_oris"]
+    inner, middle = pm.fibres[0].positions, pm.fibres[1].positions
+    skin_inner = pm.insertion_skin
+    fwd = range_rig.info.frame.axes[2]
+    back = skin_inner - inner
+    along = back @ fwd
+    assert np.all(along > 0)
+    sideways = np.linalg.norm(back - np.outer(along, fwd), axis=1)
+    assert np.all(sideways < 0.05 * along + 1e-6), sideways
+    st = range_rig.info.frame.to_local(range_rig.info.frame.stomion)[1]
+    yi = range_rig.info.frame.to_local(inner)[:, 1]
+    ym = range_rig.info.frame.to_local(middle)[:, 1]
+    up = ym > st
+    assert np.all(yi[up] < ym[up]) and np.all(yi[~up] > ym[~up])
+    reg = skull_registry(range_rig.info.skull)
+    teeth = [k for k in (0, 1) if reg.meshes[k].n_triangles > reg.bones[k].n_triangles]
+    assert teeth == [0, 1]
+    f = pm.fibres[0]
+    upper_teeth = (f.surface == 0) & (f.tri >= reg.bones[0].n_triangles)
+    assert np.sum(upper_teeth[up]) >= 2  # the upper teeth carry the ring's middle
+    assert not np.any(f.surface[~up] == 0)  # below the slit it rides the jaw, never the cranium
 
 
 def test_the_cheeks_hollow_when_the_lips_protrude(range_rig, head, rest, pucker):
@@ -138,8 +206,11 @@ def test_muscle_map_checks_protrusion(tmp_path):
     specs = {s.name: s for s in load_muscle_map(edits=RANGE_EDITS)}
     assert specs["orbicularis_oris"].protrusion == 1.2
     assert specs["orbicularis_oris"].modiolus_drag == 1.0
+    assert specs["orbicularis_oris"].project == "backward"
     default = {s.name: s for s in load_muscle_map()}
-    assert default["orbicularis_oris"].protrusion == default["orbicularis_oris"].modiolus_drag == 0
+    ring = default["orbicularis_oris"]
+    assert (ring.protrusion, ring.modiolus_drag, ring.project) == (0, 0, "normal")
+    assert default["orbicularis_oculi_L"].project == "normal"
     with pytest.raises(RigError, match="sphincters only"):
         load_muscle_map(_write_map(tmp_path, {"zygomaticus_major": {"protrusion": 0.5}}))
     for bad in (-0.1, "1", 5.0, True):
@@ -151,3 +222,23 @@ def test_muscle_map_checks_protrusion(tmp_path):
         load_muscle_map(_write_map(tmp_path, {"risorius": {"modiolus_drag": 1.0}}))
     with pytest.raises(RigError, match="not a muscle of the map"):
         load_muscle_map(edits={"orbicularis_orbis": {"protrusion": 1.0}})
+    for bad in ("back", 1, None):
+        with pytest.raises(RigError, match="project must be"):
+            load_muscle_map(_write_map(tmp_path, {"orbicularis_oris": {"project": bad}}))
+    with pytest.raises(RigError, match="project applies to sphincters only"):
+        load_muscle_map(_write_map(tmp_path, {"risorius": {"project": "backward"}}))
+
+
+def test_the_default_ring_lies_on_the_bones_and_no_skin_on_a_tooth(default_rig):
+    """Only a ring projected ``"backward"`` lies on the teeth: the default map's muscles lie
+    on the bare bones, as before the teeth were part of the skull's surfaces, and the skin
+    binds to the bones, never through the lips onto a tooth."""
+    info = default_rig.info
+    for pm in info.placed:
+        for f in pm.fibres:
+            on_skull = f.surface <= 1
+            bone = np.asarray([info.registry.bones[k].n_triangles for k in f.surface[on_skull]])
+            assert np.all(f.tri[on_skull] < bone), pm.name
+    for k in (0, 1):
+        on = info.binding.surface == k
+        assert np.all(info.binding.tri[on] < info.registry.bones[k].n_triangles)

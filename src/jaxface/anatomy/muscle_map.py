@@ -12,7 +12,9 @@ format; its ``description`` field documents the format) into face-independent
    and outer ellipses of a sphincter) is drawn at the skin, each action line split into
    segments and every split point projected inward along the smoothed skin normal onto the
    surfaces the muscle lies on (other muscles, then the skull; the outermost hit wins) -
-   the action lines of surface points of thesis sec. 4.2.1 and 4.4 (Fig. 4.15);
+   the action lines of surface points of thesis sec. 4.2.1 and 4.4 (Fig. 4.15). A
+   sphincter with ``"project": "backward"`` (the mouth ring of :data:`RANGE_EDITS`) is
+   projected straight back instead, onto the skull with its teeth (:func:`skull_registry`);
 3. muscles are placed layer by layer, deepest first, so that a muscle can lie on the meshes of
    the layers below it (passive deformation, sec. 4.3.3); each placed muscle gets its rest
    hexahedral mesh (sec. 4.2.2, :mod:`jaxface.anatomy.muscle_geometry`).
@@ -33,7 +35,7 @@ from .muscle_map_load import (
     default_muscle_map_path,
     load_muscle_map,
 )
-from .muscle_place import ActionLine, PlacedMuscle, SurfaceRegistry, place_muscles
+from .muscle_place import ActionLine, PlacedMuscle, SurfaceRegistry, place_muscles, skull_registry
 from .muscle_place import placement_registry as placement_registry
 
 __all__ = [
@@ -46,5 +48,6 @@ __all__ = [
     "check_sphincter_rings",
     "default_muscle_map_path",
     "place_muscles",
+    "skull_registry",
     "KINDS",
 ]

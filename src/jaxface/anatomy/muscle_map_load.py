@@ -51,6 +51,11 @@ class MuscleSpec:
         modiolus_drag: sphincters only: how much the ring's own contraction at each mouth
             corner moves the corner muscles inserted there (0: not at all, the thesis's
             one-way coupling; 1: the modiolus moves with the ring).
+        project: sphincters only: how the ring's skin samples are projected onto what the
+            muscle lies on: ``"normal"`` along the smoothed skin normal (thesis sec. 4.2.1),
+            ``"backward"`` along the face's -z. The lips' normals turn up and down into the
+            mouth slit, so along them the orbicularis oris's inner samples landed above
+            its middle ones; straight back they land on the teeth behind the red lip.
         note: free text.
     """
 
@@ -74,6 +79,7 @@ class MuscleSpec:
     angles_deg: dict | None = None
     protrusion: float = 0.0
     modiolus_drag: float = 0.0
+    project: str = "normal"
     note: str = ""
 
     @property
@@ -114,10 +120,16 @@ def _check_point(pt, where: str, path) -> None:
 
 
 #: The expressive-range variant of the default map (issue 44; opt-in, see
-#: ``docs/design/anatomy.md``): the orbicularis oris purses and protrudes the lips and drags
-#: the modiolus. ``load_muscle_map(edits=RANGE_EDITS)``.
+#: ``docs/design/anatomy.md``): the orbicularis oris lies on the teeth behind the red lip
+#: (projected straight back), purses and protrudes the lips and drags the modiolus.
+#: ``load_muscle_map(edits=RANGE_EDITS)``.
 RANGE_EDITS: dict[str, dict] = {
-    "orbicularis_oris": {"protrusion": 1.2, "modiolus_drag": 1.0, "max_contraction": 0.65},
+    "orbicularis_oris": {
+        "protrusion": 1.2,
+        "modiolus_drag": 1.0,
+        "max_contraction": 0.65,
+        "project": "backward",
+    },
 }
 
 
@@ -216,6 +228,13 @@ def load_muscle_map(path=None, *, edits: dict | None = None) -> list[MuscleSpec]
             )
         if drag and kind != "sphincter":
             raise RigError(f"muscle map {p}: {where} modiolus_drag applies to sphincters only.")
+        project = d.get("project", "normal")
+        if project not in ("normal", "backward"):
+            raise RigError(
+                f"muscle map {p}: {where} project must be 'normal' or 'backward', got {project!r}."
+            )
+        if project != "normal" and kind != "sphincter":
+            raise RigError(f"muscle map {p}: {where} project applies to sphincters only.")
         grid = tuple(int(x) for x in d.get("grid", (2, 8)))
         if kind not in ("eyelid", "sphincter") and (len(grid) != 2 or min(grid) < 2):
             raise RigError(f"muscle map {p}: {where} grid must be [w >= 2, h >= 2], got {grid}.")
@@ -249,6 +268,7 @@ def load_muscle_map(path=None, *, edits: dict | None = None) -> list[MuscleSpec]
                 angles_deg=dict(d["angles_deg"]) if "angles_deg" in d else None,
                 protrusion=float(d.get("protrusion", 0.0)),
                 modiolus_drag=float(d.get("modiolus_drag", 0.0)),
+                project=str(project),
                 note=str(d.get("note", "")),
             )
             if spec.name in seen:

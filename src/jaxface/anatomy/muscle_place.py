@@ -24,11 +24,16 @@ class SurfaceRegistry:
     """The surfaces action lines and skin anchors can lie on, indexed by position.
 
     ``names[0] == "cranium"``, ``names[1] == "mandible"``, then placed muscles in placement
-    order. ``meshes[k]`` is the rest :class:`TriMesh` of surface ``k``.
+    order. ``meshes[k]`` is the rest :class:`TriMesh` of surface ``k``. The two skull
+    surfaces carry their teeth (:func:`skull_registry`): the orbicularis oris lies on them.
+    ``bones`` are the same two bones without the teeth, whose triangles come first in
+    ``meshes[0]`` and ``meshes[1]`` (a triangle index into a bone is one into its surface):
+    the skin binds to the bone, never through the lips onto a tooth.
     """
 
     names: list[str] = field(default_factory=list)
     meshes: list[TriMesh] = field(default_factory=list)
+    bones: list[TriMesh] = field(default_factory=list)
 
     def add(self, name: str, mesh: TriMesh) -> int:
         self.names.append(name)
@@ -37,6 +42,32 @@ class SurfaceRegistry:
 
     def index(self, name: str) -> int:
         return self.names.index(name)
+
+
+def _with_teeth(bone: TriMesh, teeth: TriMesh | None) -> TriMesh:
+    """``bone`` and ``teeth`` as one surface, the bone's vertices and triangles first."""
+    if teeth is None:
+        return bone
+    return TriMesh(
+        np.concatenate([bone.vertices, teeth.vertices]),
+        np.concatenate([bone.triangles, teeth.triangles + bone.n_vertices]),
+        validate=False,
+    )
+
+
+def skull_registry(skull: Skull) -> SurfaceRegistry:
+    """A :class:`SurfaceRegistry` holding the skull: the cranium with the upper teeth and
+    the mandible with the lower teeth (each a bone's triangles, then its teeth hull's), and
+    the bare bones in ``bones``.
+
+    Behind the lips there is no bone at the height of the mouth slit, only the teeth, and
+    the orbicularis oris lies on them (through the mucosa and the gums). On the bone alone
+    the ring's samples at the slit fell to the nearest bone, 5-8 mm above or below it.
+    """
+    reg = SurfaceRegistry(bones=[skull.cranium, skull.mandible])
+    reg.add("cranium", _with_teeth(skull.cranium, skull.upper_teeth))
+    reg.add("mandible", _with_teeth(skull.mandible, skull.lower_teeth))
+    return reg
 
 
 @dataclass(frozen=True)
@@ -151,9 +182,7 @@ class _Placer:
         self.frame = frame
         self.centre = head_centre(frame)
         self.normals = smooth_normals(skin, 6)
-        self.registry = SurfaceRegistry()
-        self.registry.add("cranium", skull.cranium)
-        self.registry.add("mandible", skull.mandible)
+        self.registry = skull_registry(skull)
 
     def to_skin(self, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Radial projection onto the skin: positions (K, 3) and smoothed normals (K, 3)."""
@@ -164,10 +193,13 @@ class _Placer:
         return hits.positions, n
 
     def to_support(
-        self, skin_pts: np.ndarray, skin_n: np.ndarray, support: list[int]
+        self, skin_pts: np.ndarray, skin_n: np.ndarray, support: list[int], *, teeth=False
     ) -> ActionLine:
-        """Project skin-level points inward (along -normal) onto the support surfaces."""
-        meshes = [self.registry.meshes[k] for k in support]
+        """Project skin-level points inward (along -normal) onto the support surfaces: the
+        muscles and the bare bones, or with ``teeth`` the bones with their teeth (a bone's
+        triangle indices are the same in both, :func:`skull_registry`)."""
+        bones = self.registry.bones
+        meshes = [bones[k] if k < 2 and not teeth else self.registry.meshes[k] for k in support]
         start = skin_pts + 40.0 * self.frame.mean_scale * skin_n
         hits = radial_project(
             meshes,
@@ -183,7 +215,7 @@ class _Placer:
         if miss.size:  # no support under these points: attach to the nearer skull part
             best = np.full(miss.size, np.inf)
             for k in (0, 1):
-                m = self.registry.meshes[k]
+                m = self.registry.meshes[k] if teeth else bones[k]
                 sp_, dist = m.closest_points(skin_pts[miss])
                 better = dist < best
                 best[better] = dist[better]
@@ -387,7 +419,11 @@ def _place_sphincter(
         ]
     )
     sk, skn = P.to_skin(guess)
-    al_all = P.to_support(sk, skn, support)
+    # "backward": straight back along the face's -z instead of the skin normal, onto the
+    # teeth too (the lips lie on them)
+    back = spec.project == "backward"
+    along = np.broadcast_to(fr.axes[2], skn.shape).copy() if back else skn
+    al_all = P.to_support(sk, along, support, teeth=back)
     rings_skin, fibres = [], []
     # three rings: inner (A1), middle, outer (A3); each a closed action line of n points
     for r in range(3):
@@ -512,9 +548,7 @@ def place_muscles(skin: TriMesh, landmarks, skull: Skull, specs=None) -> list[Pl
 
 def placement_registry(skull: Skull, placed: list[PlacedMuscle]) -> SurfaceRegistry:
     """The :class:`SurfaceRegistry` matching ``PlacedMuscle.surface_id`` values."""
-    reg = SurfaceRegistry()
-    reg.add("cranium", skull.cranium)
-    reg.add("mandible", skull.mandible)
+    reg = skull_registry(skull)
     for pm in sorted([p for p in placed if p.surface_id >= 0], key=lambda p: p.surface_id):
         if pm.mesh is None:
             raise RigError(

@@ -54,9 +54,13 @@ def bind_skin(skin: TriMesh, registry, *, scale: float = 1.0, normal_smoothing: 
     direction = np.zeros(V, np.int64)
     muscles = list(range(2, len(registry.meshes)))
 
+    # the skull without its teeth (their triangles come after the bone's, so a bone hit is a
+    # hit on the registry surface): lip skin binds to the orbicularis oris or the bone
+    bones = registry.bones or registry.meshes[:2]
+
     def cast(ids, origins, dirs, length, targets, sign):
         for s in targets:
-            h = segment_cast(registry.meshes[s], origins, dirs, length)
+            h = segment_cast(bones[s], origins, dirs, length)
             better = h.hit & (h.t < t_best[ids])
             sel = np.flatnonzero(better)
             if sel.size:
@@ -101,7 +105,7 @@ def bind_skin(skin: TriMesh, registry, *, scale: float = 1.0, normal_smoothing: 
     if todo.size:  # closest skull point
         best = np.full(todo.size, np.inf)
         for s in (0, 1):
-            spts, dist = registry.meshes[s].closest_points(x[todo])
+            spts, dist = bones[s].closest_points(x[todo])
             b = dist < best
             best[b] = dist[b]
             surf[todo[b]] = s
