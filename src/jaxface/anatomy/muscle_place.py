@@ -25,10 +25,11 @@ class SurfaceRegistry:
 
     ``names[0] == "cranium"``, ``names[1] == "mandible"``, then placed muscles in placement
     order. ``meshes[k]`` is the rest :class:`TriMesh` of surface ``k``. The two skull
-    surfaces carry their teeth (:func:`skull_registry`): the orbicularis oris lies on them.
-    ``bones`` are the same two bones without the teeth, whose triangles come first in
-    ``meshes[0]`` and ``meshes[1]`` (a triangle index into a bone is one into its surface):
-    the skin binds to the bone, never through the lips onto a tooth.
+    surfaces carry their teeth (:func:`skull_registry`): a sphincter projected
+    ``"backward"`` (the range variant's orbicularis oris) lies on them. ``bones`` are the
+    same two bones without the teeth, whose triangles come first in ``meshes[0]`` and
+    ``meshes[1]`` (a triangle index into a bone is one into its surface): every other muscle
+    and the skin lie on the bones, never through the lips onto a tooth.
     """
 
     names: list[str] = field(default_factory=list)
@@ -62,7 +63,7 @@ def skull_registry(skull: Skull) -> SurfaceRegistry:
 
     Behind the lips there is no bone at the height of the mouth slit, only the teeth, and
     the orbicularis oris lies on them (through the mucosa and the gums). On the bone alone
-    the ring's samples at the slit fell to the nearest bone, 5-8 mm above or below it.
+    the ring's samples at the slit fell to the nearest bone, up to 9 mm above it.
     """
     reg = SurfaceRegistry(bones=[skull.cranium, skull.mandible])
     reg.add("cranium", _with_teeth(skull.cranium, skull.upper_teeth))
