@@ -44,6 +44,11 @@ class SurfaceRegistry:
     def index(self, name: str) -> int:
         return self.names.index(name)
 
+    def skull(self, *, teeth: bool) -> list[TriMesh]:
+        """The cranium and the mandible (surfaces 0 and 1): with their teeth, or the bare
+        ``bones`` (the first two meshes when no bones are set)."""
+        return self.meshes[:2] if teeth or not self.bones else self.bones
+
 
 def _with_teeth(bone: TriMesh, teeth: TriMesh | None) -> TriMesh:
     """``bone`` and ``teeth`` as one surface, the bone's vertices and triangles first."""
@@ -199,8 +204,8 @@ class _Placer:
         """Project skin-level points inward (along -normal) onto the support surfaces: the
         muscles and the bare bones, or with ``teeth`` the bones with their teeth (a bone's
         triangle indices are the same in both, :func:`skull_registry`)."""
-        bones = self.registry.bones
-        meshes = [bones[k] if k < 2 and not teeth else self.registry.meshes[k] for k in support]
+        skull = self.registry.skull(teeth=teeth)
+        meshes = [skull[k] if k < 2 else self.registry.meshes[k] for k in support]
         start = skin_pts + 40.0 * self.frame.mean_scale * skin_n
         hits = radial_project(
             meshes,
@@ -216,7 +221,7 @@ class _Placer:
         if miss.size:  # no support under these points: attach to the nearer skull part
             best = np.full(miss.size, np.inf)
             for k in (0, 1):
-                m = self.registry.meshes[k] if teeth else bones[k]
+                m = skull[k]
                 sp_, dist = m.closest_points(skin_pts[miss])
                 better = dist < best
                 best[better] = dist[better]
@@ -423,7 +428,7 @@ def _place_sphincter(
     # "backward": straight back along the face's -z instead of the skin normal, onto the
     # teeth too (the lips lie on them)
     back = spec.project == "backward"
-    along = np.broadcast_to(fr.axes[2], skn.shape).copy() if back else skn
+    along = np.tile(fr.axes[2], (len(skn), 1)) if back else skn
     al_all = P.to_support(sk, along, support, teeth=back)
     rings_skin, fibres = [], []
     # three rings: inner (A1), middle, outer (A3); each a closed action line of n points

@@ -56,7 +56,7 @@ def bind_skin(skin: TriMesh, registry, *, scale: float = 1.0, normal_smoothing: 
 
     # the skull without its teeth (their triangles come after the bone's, so a bone hit is a
     # hit on the registry surface): lip skin binds to the orbicularis oris or the bone
-    bones = registry.bones or registry.meshes[:2]
+    bones = registry.skull(teeth=False)
 
     def cast(ids, origins, dirs, length, targets, sign):
         for s in targets:
