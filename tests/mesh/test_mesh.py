@@ -239,6 +239,21 @@ def test_submesh_keeps_ids():
         m.submesh(np.zeros(len(t), bool))
 
 
+def test_concatenate_keeps_order_and_offsets_ids():
+    """Against trimesh's concatenation (an independent reference): the same vertices and
+    triangles in order, so the first mesh's triangle ids stay valid in the result."""
+    a = TriMesh(*grid(3, 2))
+    b = TriMesh(*tetrahedron())
+    c = TriMesh.concatenate([a, b, a])
+    ref = trimesh.util.concatenate(
+        [trimesh.Trimesh(m.vertices, m.triangles, process=False) for m in (a, b, a)]
+    )
+    np.testing.assert_array_equal(c.vertices, ref.vertices)
+    np.testing.assert_array_equal(c.triangles, ref.faces)
+    np.testing.assert_array_equal(c.triangles[: a.n_triangles], a.triangles)
+    assert c.n_vertices == 2 * a.n_vertices + b.n_vertices
+
+
 def test_arrays_are_read_only():
     v, t = tetrahedron()
     m = TriMesh(v, t)

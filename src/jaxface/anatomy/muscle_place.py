@@ -52,13 +52,7 @@ class SurfaceRegistry:
 
 def _with_teeth(bone: TriMesh, teeth: TriMesh | None) -> TriMesh:
     """``bone`` and ``teeth`` as one surface, the bone's vertices and triangles first."""
-    if teeth is None:
-        return bone
-    return TriMesh(
-        np.concatenate([bone.vertices, teeth.vertices]),
-        np.concatenate([bone.triangles, teeth.triangles + bone.n_vertices]),
-        validate=False,
-    )
+    return bone if teeth is None else TriMesh.concatenate([bone, teeth])
 
 
 def skull_registry(skull: Skull) -> SurfaceRegistry:

@@ -73,15 +73,8 @@ def bind_skin(skin: TriMesh, registry, *, scale: float = 1.0, normal_smoothing: 
 
     # all muscles as one mesh (one r-tree), triangle -> registry surface
     if muscles:
-        mv, mt, owner, off = [], [], [], 0
-        for s in muscles:
-            m = registry.meshes[s]
-            mv.append(m.vertices)
-            mt.append(m.triangles + off)
-            owner.append(np.full(m.n_triangles, s))
-            off += m.n_vertices
-        union = TriMesh(np.concatenate(mv), np.concatenate(mt), validate=False)
-        tri_owner = np.concatenate(owner)
+        union = TriMesh.concatenate([registry.meshes[s] for s in muscles])
+        tri_owner = np.concatenate([np.full(registry.meshes[s].n_triangles, s) for s in muscles])
         tri_first = {s: int(np.flatnonzero(tri_owner == s)[0]) for s in muscles}
 
         def cast_union(ids, origins, dirs, length, sign):

@@ -356,12 +356,8 @@ def load_skull(
         :class:`Skull` (``source="user"``).
     """
     if isinstance(cranium, (list, tuple)):
-        parts = [_as_mesh(c, units, "cranium", rotation) for c in cranium]
-        offs = np.cumsum([0] + [p.n_vertices for p in parts])[:-1]
-        cranium_mesh = TriMesh(
-            np.concatenate([p.vertices for p in parts]),
-            np.concatenate([p.triangles + o for p, o in zip(parts, offs)]),
-            validate=False,
+        cranium_mesh = TriMesh.concatenate(
+            [_as_mesh(c, units, "cranium", rotation) for c in cranium]
         )
     else:
         cranium_mesh = _as_mesh(cranium, units, "cranium", rotation)

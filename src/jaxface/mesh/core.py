@@ -154,6 +154,19 @@ class TriMesh(MeshQueries):
                 raise err
 
     @classmethod
+    def concatenate(cls, meshes) -> TriMesh:
+        """The meshes as one (not validated), in order: mesh ``k``'s vertices and triangles
+        follow those of meshes ``0..k-1`` (its triangle ids offset by their vertex count), so
+        a triangle index into the first mesh is one into the result."""
+        meshes = list(meshes)
+        offs = np.cumsum([0] + [m.n_vertices for m in meshes])[:-1]
+        return cls(
+            np.concatenate([m.vertices for m in meshes]),
+            np.concatenate([m.triangles + o for m, o in zip(meshes, offs)]),
+            validate=False,
+        )
+
+    @classmethod
     def from_trimesh(cls, tm, *, validate: bool = True) -> TriMesh:
         """Build from a ``trimesh.Trimesh`` (its vertices are taken as mm; ids unchanged)."""
         return cls(np.asarray(tm.vertices), np.asarray(tm.faces), validate=validate)
